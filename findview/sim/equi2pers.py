@@ -1,0 +1,294 @@
+"""Perspective views from equirectangular panoramas (SPEC section 1), batched and device-agnostic.
+
+The mapping, used by every renderer in findview:
+
+- view pixel ``(i, j)`` (column, row, 0-based, row 0 at the top) has the camera-frame direction
+  ``d = ((i + 0.5 - W/2) / f', -(j + 0.5 - H/2) / f', 1)`` with ``f' = W / (2 tan(fov/2))``
+  (x right, y up, z forward);
+- rotate by pitch about x (``+pitch`` tilts z towards +y), then by yaw about y (``+yaw`` turns z
+  towards +x);
+- ``lon = atan2(d_x, d_z)``, ``lat = asin(d_y / |d|)``;
+- panorama sample point ``u = (lon / 2pi + 0.5) We - 0.5``, ``v = (0.5 - lat / pi) He - 0.5`` (pixel
+  centres at integers); ``u`` wraps around the seam, ``v`` is clamped at the poles.
+
+Yaw only adds to the longitude, so a view at ``(pitch, yaw)`` samples the points of the view at
+``(pitch, 0)`` shifted by ``yaw / 360 * We`` columns. :class:`findview.sim.Simulator` exploits this.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+
+import torch
+
+from findview.geometry import focal_length
+
+__all__ = ["equi2pers", "camera_rays", "pitch_grid", "cached_pitch_grid", "sample_equirect", "MODES"]
+
+MODES = ("bilinear", "nearest", "bicubic")
+
+
+def camera_rays(height: int, width: int, fov: float, device=None, dtype=torch.float64) -> torch.Tensor:
+    """Unnormalised camera-frame ray directions ``(height, width, 3)`` (x right, y up, z forward).
+
+    ``fov`` is the horizontal field of view in degrees; the principal point is the image centre.
+    """
+    f = focal_length(fov, width)
+    i = torch.arange(width, device=device, dtype=dtype)
+    j = torch.arange(height, device=device, dtype=dtype)
+    x = ((i + 0.5 - width / 2) / f).expand(height, width)
+    y = (-(j + 0.5 - height / 2) / f)[:, None].expand(height, width)
+    z = torch.ones(height, width, device=device, dtype=dtype)
+    return torch.stack([x, y, z], dim=-1)
+
+
+def _lonlat(rays: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotate ``rays (H, W, 3)`` by per-batch ``pitch, yaw (B,)`` degrees -> lon, lat ``(B, H, W)`` radians."""
+    p = torch.deg2rad(pitch.to(rays.dtype))[:, None, None]
+    w = torch.deg2rad(yaw.to(rays.dtype))[:, None, None]
+    x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]
+    # pitch about x: z tilts towards +y
+    y1 = y * torch.cos(p) + z * torch.sin(p)
+    z1 = -y * torch.sin(p) + z * torch.cos(p)
+    # yaw about y: z turns towards +x
+    x2 = x * torch.cos(w) + z1 * torch.sin(w)
+    z2 = -x * torch.sin(w) + z1 * torch.cos(w)
+    norm = torch.sqrt(x2 * x2 + y1 * y1 + z2 * z2)
+    lon = torch.atan2(x2, z2)
+    lat = torch.asin((y1 / norm).clamp(-1.0, 1.0))
+    return lon, lat
+
+
+def pitch_grid(
+    pitch: torch.Tensor, fov: float, height: int, width: int, equi_height: int, device=None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Continuous panorama sample points ``(u, v)``, each ``(B, height, width)`` float64, for yaw 0.
+
+    ``u`` is not wrapped (add ``yaw / 360 * We`` and wrap modulo ``We``); ``v`` is not clamped.
+    """
+    equi_width = 2 * equi_height
+    rays = camera_rays(height, width, fov, device=device)
+    lon, lat = _lonlat(rays, pitch.to(device=device), torch.zeros_like(pitch, device=device))
+    u = (lon / (2 * math.pi) + 0.5) * equi_width - 0.5
+    v = (0.5 - lat / math.pi) * equi_height - 0.5
+    return u, v
+
+
+def _cubic_weights(t: torch.Tensor, a: float = -0.75) -> list[torch.Tensor]:
+    """Keys cubic-convolution weights for taps at offsets -1, 0, 1, 2 (``t`` in [0, 1))."""
+
+    def near(x):  # |x| <= 1
+        return ((a + 2) * x - (a + 3)) * x * x + 1
+
+    def far(x):  # 1 < |x| < 2
+        return ((a * x - 5 * a) * x + 8 * a) * x - 4 * a
+
+    return [far(t + 1), near(t), near(1 - t), far(2 - t)]
+
+
+def sample_equirect(
+    equi_hwc_flat: torch.Tensor,
+    base: torch.Tensor,
+    u: torch.Tensor,
+    v: torch.Tensor,
+    equi_height: int,
+    mode: str = "bilinear",
+    compute_dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Sample panoramas at continuous points, wrapping ``u`` and clamping ``v``.
+
+    Args:
+        equi_hwc_flat: ``(M, C)`` pixels of one or more panoramas stored row-major (``He * We`` rows each).
+        base: ``(B, 1)`` long, the row offset in ``equi_hwc_flat`` of each batch item's panorama.
+        u, v: ``(B, P)`` float sample points in pixel units (pixel centres at integers).
+        equi_height: ``He``; ``We = 2 He``.
+        mode: ``bilinear``, ``nearest`` or ``bicubic``.
+
+    Returns:
+        ``(B, P, C)`` samples in ``compute_dtype`` (not rounded).
+    """
+    if mode not in MODES:
+        raise ValueError(f"unknown sampling mode {mode!r}; expected one of {MODES}")
+    He, We = equi_height, 2 * equi_height
+    u = torch.remainder(u, We)
+    v = v.clamp(0, He - 1)
+    if mode == "nearest":
+        ui = torch.remainder(torch.floor(u + 0.5).long(), We)
+        vi = torch.floor(v + 0.5).long().clamp_(0, He - 1)
+        return equi_hwc_flat[base + vi * We + ui].to(compute_dtype)
+    u0f = torch.floor(u)
+    v0f = torch.floor(v)
+    fu = (u - u0f).to(compute_dtype).unsqueeze(-1)
+    fv = (v - v0f).to(compute_dtype).unsqueeze(-1)
+    u0 = u0f.long()
+    v0 = v0f.long()
+    if mode == "bilinear":
+        u1 = torch.remainder(u0 + 1, We)
+        r0 = base + v0 * We
+        r1 = base + (v0 + 1).clamp_(max=He - 1) * We
+        top = equi_hwc_flat[r0 + u0].to(compute_dtype) * (1 - fu) + equi_hwc_flat[r0 + u1].to(compute_dtype) * fu
+        bot = equi_hwc_flat[r1 + u0].to(compute_dtype) * (1 - fu) + equi_hwc_flat[r1 + u1].to(compute_dtype) * fu
+        return top * (1 - fv) + bot * fv
+    # bicubic: 4x4 taps, u wraps, v clamps
+    wu = _cubic_weights(fu)
+    wv = _cubic_weights(fv)
+    out = None
+    for a in range(4):
+        row = base + (v0 + (a - 1)).clamp(0, He - 1) * We
+        acc = None
+        for b in range(4):
+            col = torch.remainder(u0 + (b - 1), We)
+            term = equi_hwc_flat[row + col].to(compute_dtype) * wu[b]
+            acc = term if acc is None else acc + term
+        out = acc * wv[a] if out is None else out + acc * wv[a]
+    return out
+
+
+def to_output_dtype(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Cast float samples to ``dtype``: integer types are rounded half-up and clamped to their range."""
+    if dtype == torch.uint8:
+        return (x + 0.5).clamp_(0, 255).to(torch.uint8)
+    if not dtype.is_floating_point:
+        info = torch.iinfo(dtype)
+        return torch.floor(x + 0.5).clamp_(info.min, info.max).to(dtype)
+    return x.to(dtype)
+
+
+def _per_batch(x, batch: int, device) -> torch.Tensor:
+    """A scalar or ``(B,)`` angle as a ``(B,)`` float64 tensor on ``device``."""
+    t = torch.as_tensor(x, device=device, dtype=torch.float64).reshape(-1)
+    return t.expand(batch) if t.numel() == 1 else t
+
+
+_GRID_CACHE: "OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]]" = OrderedDict()
+_GRID_CACHE_SIZE = 512
+
+
+def cached_pitch_grid(pitch: float, fov: float, height: int, width: int, equi_height: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`pitch_grid` for one pitch, memoised (LRU): ``u`` wrapped into ``[0, We)``, ``v`` clamped.
+
+    Returns float64 ``(height, width)`` tensors on ``device``. Integer-degree rotations reuse at most
+    a few hundred grids, so repeated renders skip all trigonometry.
+    """
+    key = (float(pitch), float(fov), int(height), int(width), int(equi_height), str(device))
+    hit = _GRID_CACHE.get(key)
+    if hit is not None:
+        _GRID_CACHE.move_to_end(key)
+        return hit
+    u, v = pitch_grid(torch.tensor([float(pitch)], dtype=torch.float64), fov, height, width, equi_height, device=device)
+    hit = (torch.remainder(u[0], 2 * equi_height), v[0].clamp(0, equi_height - 1))
+    _GRID_CACHE[key] = hit
+    if len(_GRID_CACHE) > _GRID_CACHE_SIZE:
+        _GRID_CACHE.popitem(last=False)
+    return hit
+
+
+def _per_batch(x, batch: int, device) -> torch.Tensor:
+    """A scalar or ``(B,)`` angle as a ``(B,)`` float64 tensor on ``device``."""
+    t = torch.as_tensor(x, dtype=torch.float64).reshape(-1).to(device)
+    return t.expand(batch) if t.numel() == 1 else t
+
+
+def equi2pers(
+    equi: torch.Tensor,
+    pitch: torch.Tensor,
+    yaw: torch.Tensor,
+    fov: float,
+    height: int,
+    width: int,
+    mode: str = "bilinear",
+    backend: str = "auto",
+) -> torch.Tensor:
+    """Render perspective views from equirectangular panoramas.
+
+    Args:
+        equi: ``(B, C, He, We)`` panoramas with ``We = 2 He`` (uint8 or float, any device).
+        pitch: ``(B,)`` (or scalar) degrees, ``+`` looks up (any real value; not clamped here).
+        yaw: ``(B,)`` (or scalar) degrees, ``+`` pans right; ``(0, 0)`` looks at the panorama centre.
+        fov: horizontal field of view in degrees, in ``(0, 180)``.
+        height, width: view size in pixels.
+        mode: ``bilinear`` (default), ``nearest`` or ``bicubic``.
+        backend: ``auto`` uses OpenCV's SIMD ``remap`` for uint8 bilinear/nearest on the CPU (sample
+            points quantised to 1/32 pixel) and the exact torch sampler otherwise; ``torch`` forces
+            the torch sampler (float32 weights, float64 for float64 input); ``opencv`` forces OpenCV.
+
+    Returns:
+        ``(B, C, height, width)`` in ``equi``'s dtype and device (integer outputs rounded, clamped).
+    """
+    if not isinstance(equi, torch.Tensor) or equi.ndim != 4:
+        raise ValueError(f"equi must be a (B, C, He, We) tensor, got {type(equi).__name__} {tuple(getattr(equi, 'shape', ()))}")
+    B, C, He, We = equi.shape
+    if We != 2 * He:
+        raise ValueError(f"equi must be 2:1 equirectangular, got He={He}, We={We}")
+    if height <= 0 or width <= 0:
+        raise ValueError(f"view size must be positive, got height={height}, width={width}")
+    if mode not in MODES:
+        raise ValueError(f"unknown sampling mode {mode!r}; expected one of {MODES}")
+    if backend not in ("auto", "torch", "opencv"):
+        raise ValueError(f"unknown backend {backend!r}; expected auto, torch or opencv")
+    focal_length(fov, width)  # validates fov
+    device = equi.device
+    pitch = _per_batch(pitch, B, device)
+    yaw = _per_batch(yaw, B, device)
+    if pitch.shape[0] != B or yaw.shape[0] != B:
+        raise ValueError(f"pitch and yaw must have shape ({B},), got {tuple(pitch.shape)} and {tuple(yaw.shape)}")
+    use_cv = backend == "opencv" or (
+        backend == "auto" and device.type == "cpu" and equi.dtype == torch.uint8 and mode != "bicubic" and C <= 4
+    )
+    if use_cv:
+        return _equi2pers_opencv(equi, pitch, yaw, fov, height, width, mode)
+    grids = [cached_pitch_grid(float(p), fov, height, width, He, device) for p in pitch.tolist()]
+    u = torch.stack([g[0] for g in grids]) + (yaw / 360.0 * We)[:, None, None]
+    v = torch.stack([g[1] for g in grids])
+    flat = equi.permute(0, 2, 3, 1).reshape(B * He * We, C)
+    base = (torch.arange(B, device=device) * (He * We))[:, None]
+    cd = torch.float64 if equi.dtype == torch.float64 else torch.float32
+    out = sample_equirect(flat, base, u.reshape(B, -1), v.reshape(B, -1), He, mode, compute_dtype=cd)
+    out = out.reshape(B, height, width, C).permute(0, 3, 1, 2)
+    return to_output_dtype(out, equi.dtype).contiguous()
+
+
+def _equi2pers_opencv(equi: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor, fov: float, height: int, width: int, mode: str) -> torch.Tensor:
+    """CPU path: ``cv2.remap`` with wrap-around borders, per view (channels-last input) or per plane."""
+    import cv2
+    import numpy as np
+
+    B, C, He, We = equi.shape
+    if equi.device.type != "cpu":
+        raise ValueError("backend='opencv' needs a CPU tensor")
+    interp = cv2.INTER_LINEAR if mode == "bilinear" else cv2.INTER_NEAREST
+    shifts = (yaw.cpu().numpy() / 360.0 * We).astype(np.float32)
+    out = torch.empty((B, C, height, width), dtype=equi.dtype)
+    out_np = out.numpy()
+    hwc = equi.permute(0, 2, 3, 1)
+    channels_last = hwc.is_contiguous() and C <= 4
+    planes = equi.numpy() if not channels_last else None
+    for k, p in enumerate(pitch.tolist()):
+        u, v = _cv_maps(p, fov, height, width, He)
+        mapx = u + shifts[k]  # u in [0, We), shift in [-We/2, We/2]: BORDER_WRAP wraps the rest
+        if channels_last:
+            res = cv2.remap(hwc[k].numpy(), mapx, v, interp, borderMode=cv2.BORDER_WRAP)
+            out_np[k] = res.reshape(height, width, C).transpose(2, 0, 1)
+        else:
+            for c in range(C):
+                cv2.remap(planes[k, c], mapx, v, interp, dst=out_np[k, c], borderMode=cv2.BORDER_WRAP)
+    return out
+
+
+_CV_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
+
+
+def _cv_maps(pitch: float, fov: float, height: int, width: int, equi_height: int):
+    """float32 numpy ``(u, v)`` maps for one pitch (memoised like :func:`cached_pitch_grid`)."""
+    key = (float(pitch), float(fov), int(height), int(width), int(equi_height))
+    hit = _CV_CACHE.get(key)
+    if hit is None:
+        u, v = cached_pitch_grid(pitch, fov, height, width, equi_height, "cpu")
+        hit = (u.to(torch.float32).numpy(), v.to(torch.float32).numpy())
+        _CV_CACHE[key] = hit
+        if len(_CV_CACHE) > _GRID_CACHE_SIZE:
+            _CV_CACHE.popitem(last=False)
+    else:
+        _CV_CACHE.move_to_end(key)
+    return hit

@@ -1,0 +1,235 @@
+"""The batched FindView environment (SPEC section 2).
+
+``N`` episodes step together from one ``(N,)`` tensor of actions. All per-episode state (rotations,
+targets, step counters) is a tensor on the simulator's device; panoramas live in the simulator's bank.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from findview.episode import Episode
+from findview.geometry import l1_distance, wrap_yaw
+from findview.sim.simulator import Simulator
+from findview.task.actions import NUM_ACTIONS, Action
+from findview.task.rewards import RewardConfig, compute_reward
+from findview.task.sources import EpisodeSource
+
+__all__ = ["FindViewEnv", "TargetTransform"]
+
+# (target (3, H, W) uint8 tensor, episode) -> (3, H, W) uint8 tensor; e.g. a seeded corruption
+TargetTransform = Callable[[torch.Tensor, Episode], torch.Tensor]
+
+
+class FindViewEnv:
+    """``N`` FindView episodes stepped together.
+
+    Args:
+        simulator: renders views (owns the device and the panorama bank).
+        source: episodes to play (:class:`~findview.task.sources.StaticEpisodeSource` or
+            :class:`~findview.task.sources.SampledEpisodeSource`).
+        num_envs: ``N``.
+        max_steps: ``T``; an episode that reaches it without STOP is force-stopped.
+        pitch_bound: pitch is clamped to ``[-pitch_bound, pitch_bound]`` degrees (a move into the
+            bound costs a step and changes nothing).
+        step_deg: degrees per move.
+        reward: reward configuration (SPEC section 7).
+        auto_reset: start the next episode in a slot as soon as one ends (the returned observation is
+            then the new episode's first). Without it a finished slot must be :meth:`reset_envs`'d;
+            stepping it is an error.
+        target_transform: applied once to each new target view (e.g. a corruption), never to views.
+        prefetch: how many upcoming episodes' panoramas to decode in the background.
+    """
+
+    def __init__(
+        self,
+        simulator: Simulator,
+        source: EpisodeSource,
+        num_envs: int,
+        max_steps: int = 5000,
+        pitch_bound: int = 60,
+        step_deg: int = 1,
+        reward: RewardConfig | None = None,
+        auto_reset: bool = True,
+        target_transform: TargetTransform | None = None,
+        prefetch: int = 8,
+    ) -> None:
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if max_steps < 1:
+            raise ValueError(f"task.max_steps must be >= 1, got {max_steps}")
+        if not 0 <= pitch_bound <= 90:
+            raise ValueError(f"task.pitch_bound must be in [0, 90] degrees, got {pitch_bound}")
+        if pitch_bound > simulator.pitch_bound:
+            raise ValueError(f"task.pitch_bound={pitch_bound} exceeds the simulator's {simulator.pitch_bound}")
+        if step_deg < 1:
+            raise ValueError(f"task.step_deg must be a positive integer, got {step_deg}")
+        self.sim = simulator
+        self.source = source
+        self.num_envs = int(num_envs)
+        self.max_steps = int(max_steps)
+        self.pitch_bound = int(pitch_bound)
+        self.step_deg = int(step_deg)
+        self.reward_cfg = reward or RewardConfig()
+        self.auto_reset = auto_reset
+        self.target_transform = target_transform
+        self.prefetch = int(prefetch)
+        self.device = simulator.device
+
+        n, dev = self.num_envs, self.device
+        z = lambda dtype=torch.long: torch.zeros(n, dtype=dtype, device=dev)  # noqa: E731
+        self.pitch, self.yaw = z(), z()
+        self.target_pitch, self.target_yaw = z(), z()
+        self.steps, self.prev_eps, self.slots = z(), z(), z()
+        self.active = z(torch.bool)  # slot holds a running episode
+        self.finished = z(torch.bool)  # episode ended and (auto_reset off) not restarted yet
+        self.new_episode = z(torch.bool)
+        self.episodes: list[Episode | None] = [None] * n
+        self._has_slot = [False] * n
+        # (N, H, W, 3) buffers, rendered into in place; exposed as (N, 3, H, W) channels-last views
+        self._view_buf = simulator.new_buffer(n)
+        self._target_buf = simulator.new_buffer(n)
+        self.view = self._view_buf.permute(0, 3, 1, 2)
+        self.target = self._target_buf.permute(0, 3, 1, 2)
+        self.total_steps = 0
+
+    # ----------------------------------------------------------------- public
+    @property
+    def observations(self) -> dict[str, torch.Tensor]:
+        """``{"view", "target"}``: ``(N, 3, H, W)`` uint8 RGB, channels-last memory.
+
+        These are the environment's own buffers, updated in place by the next :meth:`step` or reset:
+        copy them (e.g. into rollout storage) to keep them.
+        """
+        return {"view": self.view, "target": self.target}
+
+    def reset(self) -> dict[str, torch.Tensor]:
+        """Start a fresh episode in every slot; returns the first observations."""
+        self._start(list(range(self.num_envs)))
+        return self.observations
+
+    def reset_envs(self, env_ids: list[int]) -> dict[str, torch.Tensor]:
+        """Start the next episodes in the given slots only (for ``auto_reset=False``)."""
+        self._start(list(env_ids))
+        return self.observations
+
+    def step(self, actions: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, list[dict | None]]:
+        """Apply ``actions (N,)`` (ids of :class:`Action`); returns ``obs, reward (N,), done (N,), infos``.
+
+        ``infos[i]`` is the finished episode's record when ``done[i]``, else ``None``. Inactive slots
+        (exhausted source) ignore their action and report reward 0, done False.
+        """
+        a = torch.as_tensor(actions).to(self.device).long().reshape(-1)
+        if a.shape[0] != self.num_envs:
+            raise ValueError(f"expected {self.num_envs} actions, got shape {tuple(a.shape)}")
+        if bool(((a < 0) | (a >= NUM_ACTIONS)).any()):
+            raise ValueError(f"actions must be in [0, {NUM_ACTIONS}), got {a.tolist()}")
+        if bool((self.finished & self.active).any()):
+            ids = torch.nonzero(self.finished & self.active).flatten().tolist()
+            raise RuntimeError(
+                f"envs {ids} finished their episode; call reset_envs({ids}) before stepping them (auto_reset=False)"
+            )
+        run = self.active
+        s = self.step_deg
+        dp = ((a == Action.UP).long() - (a == Action.DOWN).long()) * s * run
+        dy = ((a == Action.RIGHT).long() - (a == Action.LEFT).long()) * s * run
+        self.pitch = (self.pitch + dp).clamp(-self.pitch_bound, self.pitch_bound)
+        self.yaw = 180 - torch.remainder(180 - (self.yaw + dy), 360)
+        self.steps = self.steps + run.long()
+        called_stop = run & (a == Action.STOP)
+        forced = run & ~called_stop & (self.steps >= self.max_steps)
+        done = called_stop | forced
+        eps = l1_distance(self.pitch, self.yaw, self.target_pitch, self.target_yaw)
+        reward = compute_reward(self.reward_cfg, self.prev_eps, eps, called_stop, forced) * run
+        self.prev_eps = eps
+        self.total_steps += int(run.sum())  # one sync per step (also needed for done handling)
+
+        infos: list[dict | None] = [None] * self.num_envs
+        self.new_episode = torch.zeros_like(self.new_episode)
+        done_ids: list[int] = []
+        if bool(done.any()):
+            done_ids = torch.nonzero(done).flatten().tolist()
+            rec = torch.stack([self.pitch, self.yaw, self.steps, eps, called_stop.long()])[:, done_ids].tolist()
+            for k, i in enumerate(done_ids):
+                infos[i] = self._record(i, rec[0][k], rec[1][k], rec[2][k], bool(rec[4][k]), rec[3][k])
+        moved = run & ~done & ((dp != 0) | (dy != 0))
+        move_ids = torch.nonzero(moved).flatten()
+        if move_ids.numel():
+            self.sim.render_into(
+                self._view_buf, move_ids, self.slots[move_ids], self.pitch[move_ids], self.yaw[move_ids]
+            )
+        if done_ids:
+            if self.auto_reset:
+                self._start(done_ids)
+            else:
+                self.finished = self.finished | done
+        return self.observations, reward, done, infos
+
+    def close(self) -> None:
+        self.sim.bank.close()
+
+    # ---------------------------------------------------------------- private
+    def _record(self, i: int, pitch: int, yaw: int, steps: int, called_stop: bool, eps: int) -> dict:
+        ep = self.episodes[i]
+        assert ep is not None
+        return {
+            "episode_id": ep.episode_id,
+            "image": ep.image,
+            "label": ep.label,
+            "difficulty": ep.difficulty,
+            "init_pitch": ep.init_pitch,
+            "init_yaw": ep.init_yaw,
+            "target_pitch": ep.target_pitch,
+            "target_yaw": ep.target_yaw,
+            "final_pitch": pitch,
+            "final_yaw": yaw,
+            "steps": steps,
+            "called_stop": called_stop,
+            "eps": eps,
+            "shortest_path": int(l1_distance(ep.init_pitch, ep.init_yaw, ep.target_pitch, ep.target_yaw)) + 1,
+        }
+
+    def _start(self, env_ids: list[int]) -> None:
+        """Begin the source's next episodes in ``env_ids`` (slots whose source is exhausted go inactive)."""
+        bank = self.sim.bank
+        started: list[int] = []
+        rows: list[list[int]] = []
+        for i in env_ids:
+            ep = self.source.next()
+            if self._has_slot[i]:
+                bank.release(int(self.slots[i]))
+                self._has_slot[i] = False
+            self.episodes[i] = ep
+            if ep is None:
+                continue
+            if abs(ep.init_pitch) > self.pitch_bound or abs(ep.target_pitch) > self.pitch_bound:
+                raise ValueError(f"episode {ep.episode_id}: pitch outside [-{self.pitch_bound}, {self.pitch_bound}]")
+            slot = bank.acquire(ep.image)
+            self._has_slot[i] = True
+            started.append(i)
+            rows.append([slot, ep.init_pitch, ep.init_yaw, ep.target_pitch, ep.target_yaw])
+        ids = torch.tensor(env_ids, dtype=torch.long, device=self.device)
+        act = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        act[ids] = True
+        self.active = torch.where(act, False, self.active)
+        self.finished = torch.where(act, False, self.finished)
+        if started:
+            sid = torch.tensor(started, dtype=torch.long, device=self.device)
+            r = torch.tensor(rows, dtype=torch.long, device=self.device)
+
+            self.slots[sid], self.pitch[sid], self.yaw[sid] = r[:, 0], r[:, 1], wrap_yaw(r[:, 2])
+            self.target_pitch[sid], self.target_yaw[sid] = r[:, 3], wrap_yaw(r[:, 4])
+            self.steps[sid] = 0
+            self.prev_eps[sid] = l1_distance(self.pitch[sid], self.yaw[sid], self.target_pitch[sid], self.target_yaw[sid])
+            self.active[sid] = True
+            self.new_episode[sid] = True
+            self.sim.render_into(self._view_buf, sid, self.slots[sid], self.pitch[sid], self.yaw[sid])
+            self.sim.render_into(self._target_buf, sid, self.slots[sid], self.target_pitch[sid], self.target_yaw[sid])
+            if self.target_transform is not None:
+                for i in started:
+                    t = self.target_transform(self.target[i], self.episodes[i])
+                    self.target[i].copy_(t.to(self.device, torch.uint8))
+        if self.prefetch > 0:
+            bank.prefetch(ep.image for ep in self.source.peek(self.prefetch))

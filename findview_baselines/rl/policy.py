@@ -1,0 +1,297 @@
+"""Recurrent actor-critic policy of the FindView PPO baseline (SPEC section 8).
+
+Data flow for one step of ``N`` environments::
+
+    obs {"view", "target"}: (N, 3, H, W) uint8
+        -> fusion (variant-dependent, see below)   -> features (N, F)
+        -> GRU(hidden_size), state reset where masks == 0 -> h (N, hidden)
+        -> actor Linear -> 5 logits (Categorical)  and  critic Linear -> value (N,)
+
+Variants (``variant`` in ``configs/agent/ppo.yaml``):
+
+- ``early_fusion`` (paper default): view and target stacked on channels (6 channels) and encoded by one
+  CNN encoder -> F = hidden_size.
+- ``goal_encoder``: the early-fusion encoder plus a second encoder that sees the target alone; both
+  feature vectors are concatenated -> F = 2 * hidden_size.
+- ``siamese``: one 3-channel encoder shared by the view and the target (same weights), the two feature
+  vectors are fused late by concat + Linear + ReLU -> F = hidden_size.
+
+Recurrent-state convention (shared with ``storage.py``): ``masks[t] == 0`` means the observation at step
+``t`` starts a new episode, so the hidden state entering step ``t`` is zeroed before the GRU runs.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+from torch.distributions import Categorical
+
+NUM_ACTIONS = 5  # up, down, left, right, stop (findview.task.Action)
+VARIANTS = ("early_fusion", "goal_encoder", "siamese")
+
+Obs = Mapping[str, torch.Tensor]
+
+
+# --------------------------------------------------------------------------------------------------
+# Encoder
+# --------------------------------------------------------------------------------------------------
+
+# (out_channels, kernel, stride) of the three conv layers (SPEC section 8)
+CONV_LAYERS = ((32, 8, 4), (64, 4, 2), (32, 3, 1))
+
+
+def conv_output_size(height: int, width: int) -> tuple[int, int]:
+    """Spatial size ``(h, w)`` after the three conv layers (no padding) for an ``height x width`` input.
+
+    Raises ``ValueError`` when the image is too small for the encoder (below 36 pixels on a side).
+    """
+    h, w = height, width
+    for _, kernel, stride in CONV_LAYERS:
+        h = (h - kernel) // stride + 1
+        w = (w - kernel) // stride + 1
+    if h < 1 or w < 1:
+        raise ValueError(f"image {height}x{width} is too small for the CNN encoder (needs at least 36x36)")
+    return h, w
+
+
+class ConvEncoder(nn.Module):
+    """Three conv layers + one FC layer (Nature-DQN style), ReLU everywhere.
+
+    Input ``(B, C, H, W)`` float in ``[0, 1]``, output ``(B, out_size)``.
+    """
+
+    def __init__(self, in_channels: int, height: int, width: int, out_size: int = 512) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        channels = in_channels
+        for out_channels, kernel, stride in CONV_LAYERS:
+            layers += [nn.Conv2d(channels, out_channels, kernel, stride), nn.ReLU()]
+            channels = out_channels
+        self.convs = nn.Sequential(*layers)
+        h, w = conv_output_size(height, width)
+        self.flat_size = channels * h * w
+        self.fc = nn.Sequential(nn.Linear(self.flat_size, out_size), nn.ReLU())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` (B, C, H, W) float -> (B, out_size)."""
+        return self.fc(self.convs(x).flatten(1))
+
+
+def _to_float(image: torch.Tensor) -> torch.Tensor:
+    """uint8 (B, 3, H, W) in [0, 255] -> float32 in [0, 1] (float inputs are taken as already scaled)."""
+    if image.dtype == torch.uint8:
+        return image.float().div_(255.0)
+    return image.float()
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoint signature
+# --------------------------------------------------------------------------------------------------
+
+SIGNATURE_FIELDS = ("variant", "hidden_size", "height", "width")
+
+
+def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
+    """Raise ``ValueError`` naming the first field where a checkpoint's model signature differs.
+
+    ``saved`` is the dict stored in the checkpoint, ``current`` the one of the policy being loaded into
+    (both from :meth:`Policy.model_signature`).
+    """
+    for key in SIGNATURE_FIELDS:
+        if key not in saved:
+            raise ValueError(f"checkpoint model signature has no field {key!r} (saved signature: {dict(saved)})")
+        if saved[key] != current.get(key):
+            raise ValueError(
+                f"checkpoint does not fit this model: {key} is {saved[key]!r} in the checkpoint "
+                f"but {current.get(key)!r} in the current config"
+            )
+
+
+# --------------------------------------------------------------------------------------------------
+# Policy
+# --------------------------------------------------------------------------------------------------
+
+
+class Policy(nn.Module):
+    """Encoder(s) + single-layer GRU + actor/critic heads.
+
+    Args:
+        height, width: size of the view and target images (both the same).
+        variant: one of :data:`VARIANTS`.
+        hidden_size: size of the encoder features and of the GRU state (512 in the paper).
+    """
+
+    def __init__(self, height: int, width: int, variant: str = "early_fusion", hidden_size: int = 512) -> None:
+        super().__init__()
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown policy variant {variant!r}; choose one of {VARIANTS}")
+        self.variant = variant
+        self.hidden_size = hidden_size
+        self.height = height
+        self.width = width
+
+        if variant == "early_fusion":
+            self.encoder = ConvEncoder(6, height, width, hidden_size)
+            feature_size = hidden_size
+        elif variant == "goal_encoder":
+            self.encoder = ConvEncoder(6, height, width, hidden_size)
+            self.goal_encoder = ConvEncoder(3, height, width, hidden_size)
+            feature_size = 2 * hidden_size
+        else:  # siamese
+            self.encoder = ConvEncoder(3, height, width, hidden_size)
+            self.fuse = nn.Sequential(nn.Linear(2 * hidden_size, hidden_size), nn.ReLU())
+            feature_size = hidden_size
+
+        self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
+        self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
+        self.critic = nn.Linear(hidden_size, 1)
+        self._init_weights()
+
+    def _init_weights(self) -> None:
+        """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
+        for module in self.modules():
+            if isinstance(module, (nn.Conv2d, nn.Linear)):
+                nn.init.orthogonal_(module.weight, gain=math.sqrt(2))
+                nn.init.zeros_(module.bias)
+        for name, param in self.gru.named_parameters():
+            if name.startswith("weight"):
+                nn.init.orthogonal_(param)
+            else:
+                nn.init.zeros_(param)
+        nn.init.orthogonal_(self.actor.weight, gain=0.01)
+        nn.init.orthogonal_(self.critic.weight, gain=1.0)
+
+    # ---------------------------------------------------------------------------------------------
+
+    def model_signature(self) -> dict[str, Any]:
+        """What a checkpoint must match to be loaded into this policy (see :func:`check_signature`)."""
+        return {"variant": self.variant, "hidden_size": self.hidden_size, "height": self.height, "width": self.width}
+
+    def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
+        """Zero recurrent state, (num_envs, hidden_size)."""
+        return torch.zeros(num_envs, self.hidden_size, device=device)
+
+    # ---------------------------------------------------------------------------------------------
+
+    def encode(self, obs: Obs) -> torch.Tensor:
+        """Observation features before the GRU.
+
+        ``obs["view"]``, ``obs["target"]``: (B, 3, H, W) uint8 -> (B, F) with F = hidden_size
+        (2 * hidden_size for ``goal_encoder``).
+        """
+        view = _to_float(obs["view"])
+        target = _to_float(obs["target"])
+        if view.shape[-2:] != (self.height, self.width):
+            raise ValueError(
+                f"policy was built for {self.height}x{self.width} images, got {tuple(view.shape[-2:])}"
+            )
+        if self.variant == "early_fusion":
+            return self.encoder(torch.cat([view, target], dim=1))
+        if self.variant == "goal_encoder":
+            fused = self.encoder(torch.cat([view, target], dim=1))
+            return torch.cat([fused, self.goal_encoder(target)], dim=1)
+        # siamese: one encoder, two passes batched together
+        both = self.encoder(torch.cat([view, target], dim=0))
+        view_feat, target_feat = both.chunk(2, dim=0)
+        return self.fuse(torch.cat([view_feat, target_feat], dim=1))
+
+    def run_gru(
+        self, features: torch.Tensor, hidden: torch.Tensor, masks: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Run the GRU over ``T`` steps of ``N`` environments, zeroing the state where ``masks == 0``.
+
+        Args:
+            features: (T*N, F), time-major (row ``t*N + i`` is env ``i`` at step ``t``).
+            hidden: (N, hidden) state entering step 0.
+            masks: (T*N,) 0 where the observation starts a new episode, else 1.
+
+        Returns:
+            outputs (T*N, hidden) and the state after the last step (N, hidden).
+
+        The sequence is cut at every step where at least one environment restarts; each chunk runs through
+        ``nn.GRU`` in one call (fast), with the state multiplied by the masks at the chunk's first step.
+        """
+        num_envs = hidden.shape[0]
+        steps = features.shape[0] // num_envs
+        if steps * num_envs != features.shape[0]:
+            raise ValueError(f"{features.shape[0]} feature rows are not a multiple of {num_envs} environments")
+        x = features.view(steps, num_envs, -1)
+        masks = masks.to(x.dtype).view(steps, num_envs)
+
+        # step indices where some env restarts (step 0 is always a chunk start)
+        restarts = (masks[1:] == 0).any(dim=1).nonzero().flatten().add(1).tolist()
+        bounds = [0, *restarts, steps]
+
+        h = hidden.unsqueeze(0)  # (1, N, hidden): nn.GRU layout
+        outputs = []
+        for start, end in zip(bounds[:-1], bounds[1:]):
+            h = h * masks[start].view(1, num_envs, 1)
+            out, h = self.gru(x[start:end], h)
+            outputs.append(out)
+        return torch.cat(outputs, dim=0).view(steps * num_envs, -1), h.squeeze(0)
+
+    def forward(
+        self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor
+    ) -> tuple[Categorical, torch.Tensor, torch.Tensor]:
+        """Action distribution (batch T*N), values (T*N,) and the last state (N, hidden)."""
+        out, new_hidden = self.run_gru(self.encode(obs), hidden, masks)
+        dist = Categorical(logits=self.actor(out))
+        values = self.critic(out).squeeze(-1)
+        return dist, values, new_hidden
+
+    # ---------------------------------------------------------------------------------------------
+    # The API used by the trainer / evaluator
+    # ---------------------------------------------------------------------------------------------
+
+    def act(
+        self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor, deterministic: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step for ``N`` environments.
+
+        Args:
+            obs: {"view", "target"} (N, 3, H, W) uint8.
+            hidden: (N, hidden) state from the previous step.
+            masks: (N,) 0 where ``obs`` starts a new episode (e.g. ``(~env.new_episode).float()``).
+            deterministic: take the most likely action instead of sampling.
+
+        Returns:
+            actions (N,) long, log_probs (N,), values (N,), new_hidden (N, hidden).
+        """
+        dist, values, new_hidden = self(obs, hidden, masks)
+        actions = dist.logits.argmax(dim=-1) if deterministic else dist.sample()
+        return actions, dist.log_prob(actions), values, new_hidden
+
+    def get_value(self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+        """Critic value (N,) of one step (same inputs as :meth:`act`)."""
+        out, _ = self.run_gru(self.encode(obs), hidden, masks)
+        return self.critic(out).squeeze(-1)
+
+    def evaluate_actions(
+        self, obs: Obs, hidden0: torch.Tensor, masks: torch.Tensor, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Re-run a rollout of ``T`` steps of ``N`` environments (time-major, flattened).
+
+        Args:
+            obs: {"view", "target"} (T*N, 3, H, W) uint8.
+            hidden0: (N, hidden) state entering the first step.
+            masks: (T*N,) 0 where the observation starts a new episode.
+            actions: (T*N,) the actions taken.
+
+        Returns:
+            log_probs (T*N,), values (T*N,), entropy (T*N,).
+        """
+        dist, values, _ = self(obs, hidden0, masks)
+        return dist.log_prob(actions.reshape(-1)), values, dist.entropy()
+
+
+def build_policy(agent_cfg: Mapping[str, Any], height: int, width: int) -> Policy:
+    """Policy from the ``agent`` config (``variant``, ``hidden_size``) and the view size of ``sim``."""
+    return Policy(
+        height=int(height),
+        width=int(width),
+        variant=str(agent_cfg.get("variant", "early_fusion")),
+        hidden_size=int(agent_cfg.get("hidden_size", 512)),
+    )

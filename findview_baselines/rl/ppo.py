@@ -1,0 +1,201 @@
+"""PPO update (clipped surrogate, clipped value loss, entropy bonus) with linear lr / clip decay.
+
+The loss of one mini-batch, with ``ratio = exp(log_pi_new(a) - log_pi_old(a))`` and normalised
+advantages ``A``::
+
+    policy_loss = -mean(min(ratio * A, clamp(ratio, 1 - clip, 1 + clip) * A))
+    v_clipped   = old_v + clamp(v - old_v, -clip, clip)
+    value_loss  = 0.5 * mean(max((v - R)^2, (v_clipped - R)^2))     (0.5 * mean((v - R)^2) if not clipped)
+    loss        = policy_loss + value_coef * value_loss - entropy_coef * mean(entropy)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+
+from findview_baselines.rl.policy import Policy
+from findview_baselines.rl.storage import RolloutStorage
+
+
+def linear_decay(initial: float, update: int, total_updates: int) -> float:
+    """``initial * (1 - update / total_updates)``, floored at 0 (update 0 -> ``initial``)."""
+    if total_updates <= 0:
+        return initial
+    return initial * max(0.0, 1.0 - update / total_updates)
+
+
+@dataclass
+class PPOConfig:
+    """PPO hyper-parameters (the ``agent`` config group, ``configs/agent/ppo.yaml``)."""
+
+    lr: float = 2.5e-4
+    eps: float = 1e-5
+    clip: float = 0.2
+    value_coef: float = 0.5
+    entropy_coef: float = 0.01
+    max_grad_norm: float = 0.5
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    ppo_epochs: int = 4
+    num_mini_batches: int = 1
+    rollout_steps: int = 128
+    linear_decay: bool = True
+    clipped_value_loss: bool = True
+    normalize_advantage: bool = True
+
+    @classmethod
+    def from_mapping(cls, cfg: Mapping[str, Any]) -> "PPOConfig":
+        """Pick the known keys of a (Hydra / dict) agent config; other keys (name, variant, ...) are ignored."""
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: cfg[k] for k in known if k in cfg})
+
+
+def ppo_loss(
+    log_probs: torch.Tensor,
+    old_log_probs: torch.Tensor,
+    advantages: torch.Tensor,
+    values: torch.Tensor,
+    old_values: torch.Tensor,
+    returns: torch.Tensor,
+    entropy: torch.Tensor,
+    clip: float,
+    value_coef: float,
+    entropy_coef: float,
+    clipped_value_loss: bool = True,
+) -> dict[str, torch.Tensor]:
+    """The PPO loss of one mini-batch; every input is (B,). Returns scalar tensors.
+
+    Keys: ``loss`` (to minimise), ``policy_loss``, ``value_loss``, ``entropy``, ``approx_kl``
+    (``mean((ratio - 1) - log ratio)``, an unbiased, non-negative KL(old || new) estimate) and
+    ``clip_fraction`` (share of samples with ``|ratio - 1| > clip``). The last two carry no gradient.
+    """
+    log_ratio = log_probs - old_log_probs
+    ratio = log_ratio.exp()
+    surrogate = ratio * advantages
+    surrogate_clipped = ratio.clamp(1.0 - clip, 1.0 + clip) * advantages
+    policy_loss = -torch.min(surrogate, surrogate_clipped).mean()
+
+    if clipped_value_loss:
+        values_clipped = old_values + (values - old_values).clamp(-clip, clip)
+        value_loss = 0.5 * torch.max((values - returns).pow(2), (values_clipped - returns).pow(2)).mean()
+    else:
+        value_loss = 0.5 * (values - returns).pow(2).mean()
+
+    entropy = entropy.mean()
+    loss = policy_loss + value_coef * value_loss - entropy_coef * entropy
+
+    with torch.no_grad():
+        approx_kl = ((ratio - 1.0) - log_ratio).mean()
+        clip_fraction = ((ratio - 1.0).abs() > clip).float().mean()
+    return {
+        "loss": loss,
+        "policy_loss": policy_loss,
+        "value_loss": value_loss,
+        "entropy": entropy,
+        "approx_kl": approx_kl,
+        "clip_fraction": clip_fraction,
+    }
+
+
+def _check_finite(terms: Mapping[str, torch.Tensor]) -> None:
+    """Raise ``FloatingPointError`` listing every non-finite loss term (called before the optimizer step)."""
+    bad = [f"{name}={value.item()}" for name, value in terms.items() if not torch.isfinite(value).all()]
+    if bad:
+        raise FloatingPointError("non-finite PPO loss terms: " + ", ".join(bad))
+
+
+class PPO:
+    """PPO optimiser for a :class:`Policy`.
+
+    Usage per update (see ``trainer.py``)::
+
+        ppo.set_progress(update, total_updates)      # linear decay of lr and clip
+        storage.compute_returns(next_value, cfg.gamma, cfg.gae_lambda)
+        stats = ppo.update(storage)                  # may raise FloatingPointError
+    """
+
+    def __init__(self, policy: Policy, cfg: PPOConfig) -> None:
+        self.policy = policy
+        self.cfg = cfg
+        self.optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, eps=cfg.eps)
+        self.lr = cfg.lr
+        self.clip = cfg.clip
+
+    def set_progress(self, update: int, total_updates: int) -> None:
+        """Set lr and clip for update ``update`` out of ``total_updates`` (constant if linear_decay is off)."""
+        if self.cfg.linear_decay:
+            self.lr = linear_decay(self.cfg.lr, update, total_updates)
+            self.clip = linear_decay(self.cfg.clip, update, total_updates)
+        else:
+            self.lr, self.clip = self.cfg.lr, self.cfg.clip
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.lr
+
+    def update(self, storage: RolloutStorage, generator: torch.Generator | None = None) -> dict[str, float]:
+        """``ppo_epochs`` passes over the rollout in ``num_mini_batches`` env groups.
+
+        ``storage.compute_returns`` must have been called. Returns the mean over all mini-batches of
+        ``policy_loss, value_loss, entropy, approx_kl, clip_fraction, grad_norm`` (pre-clipping norm),
+        plus the ``lr`` and ``clip`` in use. Raises ``FloatingPointError`` (before stepping the optimizer)
+        if the loss or the gradient norm is not finite.
+        """
+        cfg = self.cfg
+        advantages = storage.returns - storage.values[:-1]
+        if cfg.normalize_advantage:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+
+        totals: dict[str, float] = {}
+        num_batches = 0
+        self.policy.train()
+        for _ in range(cfg.ppo_epochs):
+            for batch in storage.recurrent_minibatches(advantages, cfg.num_mini_batches, generator):
+                log_probs, values, entropy = self.policy.evaluate_actions(
+                    batch.obs, batch.hidden0, batch.masks, batch.actions
+                )
+                terms = ppo_loss(
+                    log_probs,
+                    batch.old_log_probs,
+                    batch.advantages,
+                    values,
+                    batch.old_values,
+                    batch.returns,
+                    entropy,
+                    clip=self.clip,
+                    value_coef=cfg.value_coef,
+                    entropy_coef=cfg.entropy_coef,
+                    clipped_value_loss=cfg.clipped_value_loss,
+                )
+                _check_finite(terms)
+
+                self.optimizer.zero_grad(set_to_none=True)
+                terms["loss"].backward()
+                grad_norm = nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm)
+                if not torch.isfinite(grad_norm):
+                    raise FloatingPointError(f"non-finite gradient norm: {grad_norm.item()}")
+                self.optimizer.step()
+
+                for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"):
+                    totals[name] = totals.get(name, 0.0) + terms[name].item()
+                totals["grad_norm"] = totals.get("grad_norm", 0.0) + grad_norm.item()
+                num_batches += 1
+
+        stats = {name: value / num_batches for name, value in totals.items()}
+        stats["lr"] = self.lr
+        stats["clip"] = self.clip
+        return stats
+
+    # ---------------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Optimizer state + current lr / clip (the policy weights are saved separately)."""
+        return {"optimizer": self.optimizer.state_dict(), "lr": self.lr, "clip": self.clip}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.lr, self.clip = state["lr"], state["clip"]
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.lr
