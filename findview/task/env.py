@@ -170,6 +170,58 @@ class FindViewEnv:
     def close(self) -> None:
         self.sim.bank.close()
 
+    def state_dict(self) -> dict:
+        """Everything needed to continue the running episodes exactly (for training resume).
+
+        Plain Python / tensors only (loadable with ``torch.load(weights_only=True)``); includes the
+        source's state when it has ``state_dict()``.
+        """
+        return {
+            "episodes": [None if e is None else e.to_dict() for e in self.episodes],
+            "pitch": self.pitch.cpu(),
+            "yaw": self.yaw.cpu(),
+            "steps": self.steps.cpu(),
+            "active": self.active.cpu(),
+            "finished": self.finished.cpu(),
+            "new_episode": self.new_episode.cpu(),
+            "total_steps": self.total_steps,
+            "source": self.source.state_dict() if hasattr(self.source, "state_dict") else None,
+        }
+
+    def load_state_dict(self, state: dict) -> dict[str, torch.Tensor]:
+        """Restore :meth:`state_dict` (same ``num_envs``); re-renders views and targets. Returns the obs."""
+        if len(state["episodes"]) != self.num_envs:
+            raise ValueError(f"environment state holds {len(state['episodes'])} envs, this env has {self.num_envs}")
+        bank = self.sim.bank
+        for i in range(self.num_envs):
+            if self._has_slot[i]:
+                bank.release(int(self.slots[i]))
+                self._has_slot[i] = False
+        self.episodes = [None if e is None else Episode.from_dict(e) for e in state["episodes"]]
+        dev = self.device
+        self.pitch, self.yaw = state["pitch"].to(dev), state["yaw"].to(dev)
+        self.steps = state["steps"].to(dev)
+        self.active, self.finished = state["active"].to(dev), state["finished"].to(dev)
+        self.new_episode = state["new_episode"].to(dev)
+        self.total_steps = int(state["total_steps"])
+        ids = [i for i, e in enumerate(self.episodes) if e is not None]
+        for i in ids:
+            ep = self.episodes[i]
+            self.slots[i] = bank.acquire(ep.image)
+            self._has_slot[i] = True
+            self.target_pitch[i], self.target_yaw[i] = ep.target_pitch, wrap_yaw(ep.target_yaw)
+        self.prev_eps = l1_distance(self.pitch, self.yaw, self.target_pitch, self.target_yaw)
+        if ids:
+            sid = torch.tensor(ids, dtype=torch.long, device=dev)
+            self.sim.render_into(self._view_buf, sid, self.slots[sid], self.pitch[sid], self.yaw[sid])
+            self.sim.render_into(self._target_buf, sid, self.slots[sid], self.target_pitch[sid], self.target_yaw[sid])
+            if self.target_transform is not None:
+                for i in ids:
+                    self.target[i].copy_(self.target_transform(self.target[i], self.episodes[i]).to(dev, torch.uint8))
+        if state.get("source") is not None and hasattr(self.source, "load_state_dict"):
+            self.source.load_state_dict(state["source"])
+        return self.observations
+
     # ---------------------------------------------------------------- private
     def _record(self, i: int, pitch: int, yaw: int, steps: int, called_stop: bool, eps: int) -> dict:
         ep = self.episodes[i]

@@ -36,6 +36,12 @@ class StaticEpisodeSource:
     def peek(self, n: int) -> list[Episode]:
         return self.episodes[self.index : self.index + n]
 
+    def state_dict(self) -> dict:
+        return {"index": self.index}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.index = int(state["index"])
+
 
 class SampledEpisodeSource:
     """Endless episodes from a sampler with ``sample_level(k) -> Episode`` (difficulty level ``k``).
@@ -71,3 +77,19 @@ class SampledEpisodeSource:
     def peek(self, n: int) -> list[Episode]:
         self._fill(min(n, self.lookahead))
         return list(self._queue)[:n]
+
+    def state_dict(self) -> dict:
+        """Level, queued episodes and the sampler's RNG state (if it has ``state_dict``)."""
+        return {
+            "level": self._level,
+            "queue": [e.to_dict() for e in self._queue],
+            "sampler": self.sampler.state_dict() if hasattr(self.sampler, "state_dict") else None,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self._level = int(state["level"])
+        self._queue = deque(Episode.from_dict(e) for e in state["queue"])
+        if state.get("sampler") is not None:
+            if not hasattr(self.sampler, "load_state_dict"):
+                raise ValueError("saved source state has a sampler state but this sampler cannot load one")
+            self.sampler.load_state_dict(state["sampler"])
