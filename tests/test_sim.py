@@ -152,7 +152,11 @@ def test_modes_and_dtypes(pano):
         a = equi2pers(equi, 10.0, 20.0, 90, 64, 64, mode=mode)
         b = equi2pers(equi.float(), 10.0, 20.0, 90, 64, 64, mode=mode)
         assert a.dtype == torch.uint8 and b.dtype == torch.float32
-        assert (a.float() - b.clamp(0, 255)).abs().max() <= 1.0 + 1e-3 if mode != "bilinear" else True
+        d = (a.float() - b.clamp(0, 255)).abs()
+        if mode == "nearest":  # OpenCV (uint8) and torch (float) paths may round exact ties differently
+            assert (d > 0).float().mean() < 1e-3
+        else:
+            assert d.max() <= 1.0 + 1e-3
     near = equi2pers(equi, 10.0, 20.0, 90, 64, 64, mode="nearest", backend="torch")
     colours = set(map(tuple, pano.reshape(-1, 3)[::7].tolist()))
     sample = near[0].permute(1, 2, 0).reshape(-1, 3)[::97].tolist()

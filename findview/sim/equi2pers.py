@@ -20,11 +20,12 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 
+import numpy as np
 import torch
 
 from findview.geometry import focal_length
 
-__all__ = ["equi2pers", "camera_rays", "pitch_grid", "cached_pitch_grid", "sample_equirect", "MODES"]
+__all__ = ["equi2pers", "camera_rays", "pitch_grid", "sample_points", "sample_equirect", "MODES"]
 
 MODES = ("bilinear", "nearest", "bicubic")
 
@@ -155,33 +156,56 @@ def to_output_dtype(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return x.to(dtype)
 
 
-def _per_batch(x, batch: int, device) -> torch.Tensor:
-    """A scalar or ``(B,)`` angle as a ``(B,)`` float64 tensor on ``device``."""
-    t = torch.as_tensor(x, device=device, dtype=torch.float64).reshape(-1)
-    return t.expand(batch) if t.numel() == 1 else t
-
-
+_RAYS_CACHE: dict[tuple, torch.Tensor] = {}
 _GRID_CACHE: "OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]]" = OrderedDict()
-_GRID_CACHE_SIZE = 512
+_GRID_CACHE_SIZE = 400  # > the 121 integer pitches of [-60, 60] at a few view sizes
 
 
-def cached_pitch_grid(pitch: float, fov: float, height: int, width: int, equi_height: int, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`pitch_grid` for one pitch, memoised (LRU): ``u`` wrapped into ``[0, We)``, ``v`` clamped.
+def _cached_rays(height: int, width: int, fov: float, device, dtype) -> torch.Tensor:
+    key = (int(height), int(width), float(fov), str(device), dtype)
+    rays = _RAYS_CACHE.get(key)
+    if rays is None:
+        if len(_RAYS_CACHE) > 16:
+            _RAYS_CACHE.clear()
+        rays = _RAYS_CACHE[key] = camera_rays(height, width, fov, device=device, dtype=dtype)
+    return rays
 
-    Returns float64 ``(height, width)`` tensors on ``device``. Integer-degree rotations reuse at most
-    a few hundred grids, so repeated renders skip all trigonometry.
+
+def sample_points(
+    pitch: torch.Tensor, fov: float, height: int, width: int, equi_height: int, dtype=torch.float32, stack: bool = True
+):
+    """Sample points ``(u, v)``, each ``(B, height, width)`` in ``dtype``, for yaw 0 at ``pitch (B,)``.
+
+    ``u`` is wrapped into ``[0, We)`` and ``v`` clamped to ``[0, He - 1]``; add ``yaw / 360 * We`` to ``u``
+    for another yaw. Integer pitches (the task's) are memoised (float32), so repeated renders skip
+    all trigonometry; other pitches are computed on the fly in ``dtype``.
     """
-    key = (float(pitch), float(fov), int(height), int(width), int(equi_height), str(device))
-    hit = _GRID_CACHE.get(key)
-    if hit is not None:
-        _GRID_CACHE.move_to_end(key)
-        return hit
-    u, v = pitch_grid(torch.tensor([float(pitch)], dtype=torch.float64), fov, height, width, equi_height, device=device)
-    hit = (torch.remainder(u[0], 2 * equi_height), v[0].clamp(0, equi_height - 1))
-    _GRID_CACHE[key] = hit
-    if len(_GRID_CACHE) > _GRID_CACHE_SIZE:
-        _GRID_CACHE.popitem(last=False)
-    return hit
+    device = pitch.device
+    We = 2 * equi_height
+    out_u, out_v = [], []
+    for p in pitch.reshape(-1).tolist():
+        key = (float(p), float(fov), int(height), int(width), int(equi_height), str(device))
+        cacheable = float(p).is_integer() and dtype == torch.float32
+        hit = _GRID_CACHE.get(key) if cacheable else None
+        if hit is None:
+            rays = _cached_rays(height, width, fov, device, dtype)
+            pt = torch.tensor([float(p)], dtype=dtype, device=device)
+            lon, lat = _lonlat(rays, pt, torch.zeros_like(pt))
+            u = torch.remainder((lon[0] / (2 * math.pi) + 0.5) * We - 0.5, We)
+            v = ((0.5 - lat[0] / math.pi) * equi_height - 0.5).clamp(0, equi_height - 1)
+            hit = (u.to(dtype), v.to(dtype))
+            if cacheable:
+                _GRID_CACHE[key] = hit
+                if len(_GRID_CACHE) > _GRID_CACHE_SIZE:
+                    _GRID_CACHE.popitem(last=False)
+        else:
+            _GRID_CACHE.move_to_end(key)
+        out_u.append(hit[0])
+        out_v.append(hit[1])
+    if not stack:  # lists of (height, width) tensors, no copy
+        return out_u, out_v
+    return torch.stack(out_u), torch.stack(out_v)
+
 
 
 def _per_batch(x, batch: int, device) -> torch.Tensor:
@@ -236,59 +260,43 @@ def equi2pers(
     use_cv = backend == "opencv" or (
         backend == "auto" and device.type == "cpu" and equi.dtype == torch.uint8 and mode != "bicubic" and C <= 4
     )
+    cd = torch.float64 if equi.dtype == torch.float64 else torch.float32
+    shift = (yaw / 360.0 * We).to(cd)
     if use_cv:
-        return _equi2pers_opencv(equi, pitch, yaw, fov, height, width, mode)
-    grids = [cached_pitch_grid(float(p), fov, height, width, He, device) for p in pitch.tolist()]
-    u = torch.stack([g[0] for g in grids]) + (yaw / 360.0 * We)[:, None, None]
-    v = torch.stack([g[1] for g in grids])
+        u, v = sample_points(pitch.to(cd), fov, height, width, He, dtype=cd, stack=False)
+        return _equi2pers_opencv(equi, u, v, shift, mode)
+    u, v = sample_points(pitch.to(cd), fov, height, width, He, dtype=cd)
+    u = u + shift[:, None, None]
     flat = equi.permute(0, 2, 3, 1).reshape(B * He * We, C)
     base = (torch.arange(B, device=device) * (He * We))[:, None]
-    cd = torch.float64 if equi.dtype == torch.float64 else torch.float32
     out = sample_equirect(flat, base, u.reshape(B, -1), v.reshape(B, -1), He, mode, compute_dtype=cd)
     out = out.reshape(B, height, width, C).permute(0, 3, 1, 2)
     return to_output_dtype(out, equi.dtype).contiguous()
 
 
-def _equi2pers_opencv(equi: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor, fov: float, height: int, width: int, mode: str) -> torch.Tensor:
-    """CPU path: ``cv2.remap`` with wrap-around borders, per view (channels-last input) or per plane."""
+def _equi2pers_opencv(equi: torch.Tensor, u: torch.Tensor, v: torch.Tensor, shift: torch.Tensor, mode: str) -> torch.Tensor:
+    """CPU path: ``cv2.remap`` with wrap-around borders, per view (channels-last input) or per plane.
+
+    ``u, v``: ``B`` float32 ``(H, W)`` sample points at yaw 0; ``shift``: ``(B,)`` columns to add to ``u``.
+    """
     import cv2
-    import numpy as np
 
     B, C, He, We = equi.shape
     if equi.device.type != "cpu":
         raise ValueError("backend='opencv' needs a CPU tensor")
+    height, width = u[0].shape
     interp = cv2.INTER_LINEAR if mode == "bilinear" else cv2.INTER_NEAREST
-    shifts = (yaw.cpu().numpy() / 360.0 * We).astype(np.float32)
     out = torch.empty((B, C, height, width), dtype=equi.dtype)
     out_np = out.numpy()
     hwc = equi.permute(0, 2, 3, 1)
     channels_last = hwc.is_contiguous() and C <= 4
-    planes = equi.numpy() if not channels_last else None
-    for k, p in enumerate(pitch.tolist()):
-        u, v = _cv_maps(p, fov, height, width, He)
-        mapx = u + shifts[k]  # u in [0, We), shift in [-We/2, We/2]: BORDER_WRAP wraps the rest
+    planes = None if channels_last else equi.contiguous().numpy()
+    for k, sh in enumerate(shift.tolist()):
+        mapx = u[k].numpy() + np.float32(sh)  # u in [0, We), shift in [-We/2, We/2]: BORDER_WRAP wraps the rest
         if channels_last:
-            res = cv2.remap(hwc[k].numpy(), mapx, v, interp, borderMode=cv2.BORDER_WRAP)
+            res = cv2.remap(hwc[k].numpy(), mapx, v[k].numpy(), interp, borderMode=cv2.BORDER_WRAP)
             out_np[k] = res.reshape(height, width, C).transpose(2, 0, 1)
         else:
             for c in range(C):
-                cv2.remap(planes[k, c], mapx, v, interp, dst=out_np[k, c], borderMode=cv2.BORDER_WRAP)
+                cv2.remap(planes[k, c], mapx, v[k].numpy(), interp, dst=out_np[k, c], borderMode=cv2.BORDER_WRAP)
     return out
-
-
-_CV_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
-
-
-def _cv_maps(pitch: float, fov: float, height: int, width: int, equi_height: int):
-    """float32 numpy ``(u, v)`` maps for one pitch (memoised like :func:`cached_pitch_grid`)."""
-    key = (float(pitch), float(fov), int(height), int(width), int(equi_height))
-    hit = _CV_CACHE.get(key)
-    if hit is None:
-        u, v = cached_pitch_grid(pitch, fov, height, width, equi_height, "cpu")
-        hit = (u.to(torch.float32).numpy(), v.to(torch.float32).numpy())
-        _CV_CACHE[key] = hit
-        if len(_CV_CACHE) > _GRID_CACHE_SIZE:
-            _CV_CACHE.popitem(last=False)
-    else:
-        _CV_CACHE.move_to_end(key)
-    return hit

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from findview.sim.bank import PanoramaBank
-from findview.sim.equi2pers import MODES, pitch_grid, sample_equirect, to_output_dtype
+from findview.sim.equi2pers import MODES, sample_equirect, sample_points, to_output_dtype
 
 log = logging.getLogger(__name__)
 
@@ -94,13 +94,11 @@ class Simulator:
 
     # ------------------------------------------------------------------ grids
     def _build_grids(self, He: int) -> None:
-        pitches = torch.arange(-self.pitch_bound, self.pitch_bound + 1, dtype=torch.float64)
-        u, v = pitch_grid(pitches, self.fov, self.height, self.width, He)  # (P, H, W) float64
-        v = v.clamp(0, He - 1)
-        u = torch.remainder(u, 2 * He)
+        pitches = torch.arange(-self.pitch_bound, self.pitch_bound + 1, dtype=torch.float32)
+        u, v = sample_points(pitches, self.fov, self.height, self.width, He)  # (P, H, W) float32, u in [0, We)
         if self.backend == "opencv":
-            self._u_np = u.to(torch.float32).numpy()
-            self._v_np = v.to(torch.float32).numpy()
+            self._u_np = u.numpy()
+            self._v_np = v.numpy()
         else:
             P = pitches.numel()
             self._u = u.reshape(P, -1).to(self.device, torch.float32)
