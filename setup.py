@@ -19,7 +19,7 @@ setup(
     packages=find_packages(include=["findview", "findview.*", "findview_baselines", "findview_baselines.*"]),
     install_requires=requirements,
     extras_require={
-        "dev": ["pytest==9.2.0"],
+        "dev": ["pytest==9.2.0", "gymnasium==1.4.0"],
         "gym": ["gymnasium>=1.0"],
         # the reference renderer used only by benchmarks/ (the authors' renderer)
         "bench": ["pyequilib==0.5.8"],
