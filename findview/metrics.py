@@ -101,7 +101,9 @@ def _record_eps(r: Mapping[str, Any]) -> float:
     if "eps" in r and r["eps"] is not None:
         return float(r["eps"])
     try:
-        return float(l1_distance(int(r["final_pitch"]), int(r["final_yaw"]), int(r["target_pitch"]), int(r["target_yaw"])))
+        return float(
+            l1_distance(int(r["final_pitch"]), int(r["final_yaw"]), int(r["target_pitch"]), int(r["target_yaw"]))
+        )
     except KeyError as e:
         raise KeyError(f"episode record {r.get('episode_id', '?')!r} has no 'eps' and no {e} to compute it") from e
 
@@ -110,7 +112,9 @@ def _record_shortest(r: Mapping[str, Any]) -> float:
     if "shortest_path" in r and r["shortest_path"] is not None:
         return float(r["shortest_path"])
     try:
-        return float(l1_distance(int(r["init_pitch"]), int(r["init_yaw"]), int(r["target_pitch"]), int(r["target_yaw"])) + 1)
+        return float(
+            l1_distance(int(r["init_pitch"]), int(r["init_yaw"]), int(r["target_pitch"]), int(r["target_yaw"])) + 1
+        )
     except KeyError as e:
         raise KeyError(
             f"episode record {r.get('episode_id', '?')!r} has no 'shortest_path' and no {e} to compute it"
@@ -256,6 +260,8 @@ def format_table(
             if m is None:
                 cells.extend(["-"] * 4)
             else:
-                cells.extend([_fmt_eps(m["eps"]), _fmt_pct(m["omega_stop"]), _fmt_pct(m["omega_perf"]), _fmt_pct(m["spl"])])
+                cells.extend(
+                    [_fmt_eps(m["eps"]), _fmt_pct(m["omega_stop"]), _fmt_pct(m["omega_perf"]), _fmt_pct(m["spl"])]
+                )
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -15,6 +15,7 @@ The file is JSON (header keys first, then one episode per line, images relative 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -174,5 +175,5 @@ def load_episodes(path: str | os.PathLike, root: str | os.PathLike | None = None
     for d in doc["episodes"]:
         ep = Episode.from_dict(d)
         image = ep.image if os.path.isabs(ep.image) else os.path.normpath(os.path.join(base, ep.image))
-        out.append(Episode(**{**ep.__dict__, "image": image}))
+        out.append(dataclasses.replace(ep, image=image))
     return out

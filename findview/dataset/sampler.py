@@ -24,7 +24,7 @@ from findview.dataset.discovery import ImageEntry
 from findview.episode import DIFFICULTIES, Episode
 from findview.geometry import yaw_diff
 
-__all__ = ["EpisodeSampler", "SamplingError", "sample_rotations", "derive_seed", "DEFAULT_MAX_TRIES"]
+__all__ = ["EpisodeSampler", "SamplingError", "sample_rotations", "sample_pitch", "derive_seed", "DEFAULT_MAX_TRIES"]
 
 DEFAULT_MAX_TRIES = 100_000
 
@@ -37,6 +37,15 @@ def derive_seed(*parts: object) -> int:
     """A stable 31-bit seed from ``parts`` (sha256 of their ``repr``; same on every machine)."""
     digest = hashlib.sha256(repr(tuple(parts)).encode("utf-8")).digest()
     return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+def sample_pitch(rng: np.random.Generator, n: int, pitch_bound: int = 60) -> np.ndarray:
+    """``n`` integer pitches (degrees, int64) from :func:`findview.dataset.difficulty.pitch_distribution`
+    (inverse-CDF sampling)."""
+    values, probs = pitch_distribution(pitch_bound)
+    cdf = np.cumsum(probs)
+    cdf[-1] = 1.0
+    return values[np.searchsorted(cdf, rng.random(n), side="right").clip(0, len(values) - 1)]
 
 
 def sample_rotations(
@@ -75,9 +84,6 @@ def sample_rotations(
     hard_rule = check_hard_rule(hard_rule)
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
-    values, probs = pitch_distribution(pitch_bound)
-    cdf = np.cumsum(probs)
-    cdf[-1] = 1.0
     out = np.empty((n, 4), dtype=np.int64)
     got = tried = 0
     budget = max_tries * max(n, 1)
@@ -93,8 +99,8 @@ def sample_rotations(
         batch = int(need / rate * 1.2) + 256 if rate > 0 else max(4096, 8 * need)
         batch = min(batch, 1 << 20, budget - tried)
         tried += batch
-        pi = values[np.searchsorted(cdf, rng.random(batch), side="right").clip(0, len(values) - 1)]
-        pt = values[np.searchsorted(cdf, rng.random(batch), side="right").clip(0, len(values) - 1)]
+        pi = sample_pitch(rng, batch, pitch_bound)
+        pt = sample_pitch(rng, batch, pitch_bound)
         yi = rng.integers(-179, 181, size=batch, dtype=np.int64)
         yt = rng.integers(-179, 181, size=batch, dtype=np.int64)
         keep = difficulty_mask(np.abs(pi - pt), yaw_diff(yi, yt), difficulty, fov, max_steps, hard_rule)

@@ -29,10 +29,11 @@ processed by ``threads`` worker threads (OpenCV releases the GIL), with ``cv2_th
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -67,6 +68,7 @@ __all__ = [
     "is_oscillating",
     "parse_d_thresh",
     "ParallelRunner",
+    "cv2_num_threads",
     "FeatureMatchingAgent",
 ]
 
@@ -267,6 +269,24 @@ def parse_d_thresh(value: Any) -> dict[str, float]:
     return {**{d: x for d in DIFFICULTIES}, "default": x}
 
 
+@contextlib.contextmanager
+def cv2_num_threads(n: int | None) -> Iterator[None]:
+    """Run the block with ``cv2.setNumThreads(n)`` and restore the previous value (``None``: no change).
+
+    OpenCV's setting is process-wide; scoping it to the agent's ``act`` keeps e.g. the simulator's
+    OpenCV remaps multi-threaded.
+    """
+    if n is None:
+        yield
+        return
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(int(n))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(prev)
+
+
 class ParallelRunner:
     """Maps a function over slots with a small thread pool (serial for 1 thread or 1 item)."""
 
@@ -314,7 +334,9 @@ class FeatureMatchingAgent(Agent):
         osc_window: actions in the oscillation window, this step's included (4; < 2 disables).
         osc_rule: ``"alternating"`` or ``"mixed"`` (see :func:`is_oscillating`).
         threads: worker threads over slots (2).
-        cv2_threads: ``cv2.setNumThreads`` value set at construction (1; ``None`` leaves it alone).
+        cv2_threads: OpenCV threads while the agent acts on several slots (1: the slot threads do the
+            parallel work; ``None`` leaves OpenCV's setting alone). Restored after each ``act``; a step
+            with a single slot to process keeps OpenCV's own setting.
     """
 
     name = "feature"
@@ -366,8 +388,7 @@ class FeatureMatchingAgent(Agent):
         self.stop_px = float(stop_px)
         self.osc_window = int(osc_window)
         self.osc_rule = osc_rule
-        if cv2_threads is not None:
-            cv2.setNumThreads(int(cv2_threads))
+        self.cv2_threads = None if cv2_threads is None else int(cv2_threads)
         self.runner = ParallelRunner(threads)
         self._rng = np.random.default_rng(self.seed)
         self.states = [self._fresh_state(None) for _ in range(self.num_envs)]
@@ -447,7 +468,10 @@ class FeatureMatchingAgent(Agent):
                 cur = detect(self.detector, gv[k], self.n_features)
                 return self.decide(i, cur)
 
-            for i, a in zip(work, self.runner.map(step, list(enumerate(work)))):
+            # one slot: let OpenCV parallelise inside it; several: one slot per worker thread
+            with cv2_num_threads(self.cv2_threads if len(work) > 1 else None):
+                results = self.runner.map(step, list(enumerate(work)))
+            for i, a in zip(work, results):
                 actions[i] = a
         return self._as_actions(actions, view.device)
 

@@ -1,0 +1,184 @@
+"""A trained PPO policy (``findview_baselines.rl``) behind the batched :class:`Agent` interface.
+
+- The model is rebuilt from the checkpoint's own signature (``variant``, ``hidden_size``, ``height``,
+  ``width``), so no model config is needed; a checkpoint trained on another view size than the
+  simulator's fails with a message naming both sizes.
+- The GRU state of a slot is zeroed by ``reset(env_ids, ...)`` (a new episode starts there).
+- Actions are greedy (argmax of the logits) by default; ``sample=True`` draws them from the policy's
+  distribution with one random stream per episode (seeded from the agent seed and the episode's id),
+  so a trajectory does not depend on which slot or batch the episode ran in.
+- A slot that answered STOP keeps answering STOP without running the network until it is reset.
+
+Checkpoints are read with ``torch.load(..., weights_only=True)``; the layout is the one written by the
+trainer (``{"signature": {...}, "policy": state_dict, ...}``, see ``findview_baselines.rl.checkpoint``).
+
+Importing this module registers the agent as ``ppo`` for :func:`findview_baselines.agents.make_agent`
+(``cfg`` must then hold ``checkpoint``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from findview.episode import Episode
+from findview_baselines.agents.base import STOP, Agent, episode_rng, to_plain_dict
+
+__all__ = ["PPOAgent", "load_ppo_checkpoint"]
+
+
+def load_ppo_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a PPO checkpoint safely (``weights_only=True``) on the CPU.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a loadable findview PPO checkpoint (message names the file).
+    """
+    try:
+        from findview_baselines.rl.checkpoint import load_checkpoint
+    except ImportError:  # pragma: no cover - older trainer without the checkpoint module
+        load_checkpoint = None
+    if load_checkpoint is not None:
+        return load_checkpoint(path, map_location="cpu")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise ValueError(f"{path} is not a loadable findview PPO checkpoint: {type(err).__name__}: {err}") from err
+    if not isinstance(state, dict) or "signature" not in state or "policy" not in state:
+        raise ValueError(f"{path} is not a findview PPO checkpoint (no 'signature' / 'policy' entries)")
+    return state
+
+
+class PPOAgent(Agent):
+    """Greedy (or sampling) actions of a recurrent PPO policy.
+
+    Args:
+        policy: a :class:`findview_baselines.rl.Policy` (moved to ``device``, put in eval mode).
+        num_envs, device, seed: see :class:`Agent`; ``device`` is where the network runs.
+        sample: draw actions from the policy instead of taking the argmax.
+    """
+
+    name = "ppo"
+    #: keys of configs/agent/ppo.yaml used here; every other key (training hyper-parameters) is ignored
+    CONFIG_KEYS = ("checkpoint", "sample", "deterministic_eval", "height", "width")
+
+    def __init__(
+        self, policy: torch.nn.Module, num_envs: int, device: str | torch.device = "cpu", seed: int = 0, sample: bool = False
+    ) -> None:
+        super().__init__(num_envs, device, seed)
+        self.policy = policy.to(self.device).eval()
+        self.sample = bool(sample)
+        self.hidden = policy.initial_hidden(self.num_envs, self.device)
+        self.done = np.zeros(self.num_envs, dtype=bool)
+        self._fallback = np.random.default_rng(self.seed)
+        self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
+
+    # construction --------------------------------------------------------------------------------
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | os.PathLike,
+        num_envs: int,
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+        sample: bool = False,
+        height: int | None = None,
+        width: int | None = None,
+    ) -> "PPOAgent":
+        """Rebuild the policy from a checkpoint's signature and load its weights.
+
+        Args:
+            height, width: the simulator's view size; a checkpoint trained on another size raises
+                ``ValueError`` saying which.
+        """
+        from findview_baselines.rl.policy import Policy, check_signature
+
+        state = load_ppo_checkpoint(path)
+        sig = dict(state["signature"])
+        missing = [k for k in ("variant", "hidden_size", "height", "width") if k not in sig]
+        if missing:
+            raise ValueError(f"{path}: checkpoint model signature lacks {missing} (signature: {sig})")
+        h, w = int(sig["height"]), int(sig["width"])
+        if (height is not None and int(height) != h) or (width is not None and int(width) != w):
+            raise ValueError(
+                f"checkpoint {path} was trained on {h}x{w} (height x width) views but the simulator renders "
+                f"{height}x{width} (sim.height={height}, sim.width={width}); evaluate it with "
+                f"sim.height={h} sim.width={w} (and the FoV it was trained with)"
+            )
+        policy = Policy(height=h, width=w, variant=str(sig["variant"]), hidden_size=int(sig["hidden_size"]))
+        check_signature(sig, policy.model_signature())
+        try:
+            policy.load_state_dict(state["policy"])
+        except RuntimeError as err:
+            raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
+        return cls(policy, num_envs, device, seed, sample)
+
+    @classmethod
+    def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "PPOAgent":
+        """Factory for :func:`make_agent`: ``cfg`` holds ``checkpoint`` (required), optionally ``sample``
+        (else ``not deterministic_eval``) and the expected ``height`` / ``width``; training keys are ignored."""
+        c = to_plain_dict(cfg)
+        if not c.get("checkpoint"):
+            raise ValueError("agent 'ppo' needs a checkpoint: pass checkpoint=<path to a .pth file>")
+        sample = c.get("sample")
+        if sample is None:
+            sample = not bool(c.get("deterministic_eval", True))
+        return cls.from_checkpoint(
+            c["checkpoint"], num_envs, device, seed, bool(sample), height=c.get("height"), width=c.get("width")
+        )
+
+    # acting --------------------------------------------------------------------------------------
+    def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
+        super().reset(env_ids, episodes)
+        ids = [int(i) for i in env_ids]
+        if not ids:
+            return
+        self.hidden[torch.tensor(ids, device=self.hidden.device)] = 0.0
+        for i, ep in zip(ids, episodes):
+            self.done[i] = ep is None
+            self._rngs[i] = episode_rng(self.seed, ep, self._fallback)
+
+    @torch.no_grad()
+    def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        view, target = self._check_obs(obs)
+        actions = torch.full((self.num_envs,), STOP, dtype=torch.long, device=self.device)
+        work = np.flatnonzero(~self.done)
+        if len(work):
+            full = len(work) == self.num_envs
+            idx = torch.as_tensor(work, device=self.device)
+            v = view.to(self.device) if full else view.to(self.device)[idx]
+            t = target.to(self.device) if full else target.to(self.device)[idx]
+            h = self.hidden if full else self.hidden[idx]
+            masks = torch.ones(len(work), device=self.device)
+            dist, _, h_new = self.policy({"view": v, "target": t}, h, masks)
+            if full:
+                self.hidden = h_new
+            else:
+                self.hidden[idx] = h_new
+            if self.sample:
+                probs = dist.probs.double().cpu().numpy()
+                cdf = np.cumsum(probs, axis=1)
+                u = np.array([self._rngs[i].random() for i in work])
+                a = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), probs.shape[1] - 1)
+                a_t = torch.as_tensor(a, dtype=torch.long, device=self.device)
+            else:
+                a_t = dist.logits.argmax(dim=-1)
+            actions[idx] = a_t
+            self.done[work[(a_t == STOP).cpu().numpy()]] = True
+        return actions.to(view.device)
+
+
+def _register() -> None:
+    from findview_baselines.agents import AGENTS, register_agent
+
+    if "ppo" not in AGENTS:
+        register_agent("ppo", PPOAgent.from_config)
+
+
+_register()

@@ -1,0 +1,208 @@
+"""Run agents on a batched FindView environment and time them (the evaluation harness).
+
+:func:`run_episodes` steps a :class:`~findview.task.FindViewEnv` (auto-reset, normally fed by a
+:class:`~findview.task.StaticEpisodeSource`) with an :class:`~findview_baselines.agents.base.Agent` until
+every episode is done, and returns the per-episode records (the environment's info dicts) plus the
+:class:`Runtime` measurements.
+
+Timing follows the paper's Table 12: the agent is timed alone (``agent.act``) and the environment alone
+(``env.step``). ``agent_fps`` = agent decisions / agent seconds and ``env_fps`` = environment steps / env
+seconds, where both counts are per environment slot (one decision / step per running episode and call).
+On CUDA the device is synchronised before each clock read.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+
+__all__ = ["Runtime", "run_episodes", "TrajectoryRecorder", "StepCallback"]
+
+#: ``callback(env, actions)``: called after ``agent.act`` and before ``env.step`` (not timed)
+StepCallback = Callable[[Any, torch.Tensor], None]
+
+
+@dataclass
+class Runtime:
+    """Timing of one :func:`run_episodes` call.
+
+    Attributes:
+        agent_seconds: time spent in ``agent.act``.
+        env_seconds: time spent in ``env.step`` (the initial ``env.reset`` is not counted).
+        agent_decisions: actions produced for running episodes (one per running slot and ``act`` call).
+        env_steps: environment steps of running episodes (same count as the decisions).
+        episodes: finished episodes.
+        wall_seconds: wall-clock time of the whole run, reset and bookkeeping included.
+    """
+
+    agent_seconds: float = 0.0
+    env_seconds: float = 0.0
+    agent_decisions: int = 0
+    env_steps: int = 0
+    episodes: int = 0
+    wall_seconds: float = 0.0
+
+    @property
+    def agent_fps(self) -> float:
+        """Agent decisions per second of agent time (0 when nothing was timed)."""
+        return self.agent_decisions / self.agent_seconds if self.agent_seconds > 0 else 0.0
+
+    @property
+    def env_fps(self) -> float:
+        """Per-slot environment steps per second of environment time (0 when nothing was timed)."""
+        return self.env_steps / self.env_seconds if self.env_seconds > 0 else 0.0
+
+    def summary(self) -> dict[str, float]:
+        """``{"agent_fps", "env_fps"}`` (the ``runtime`` block of ``summary.json``)."""
+        return {"agent_fps": float(self.agent_fps), "env_fps": float(self.env_fps)}
+
+    def to_dict(self) -> dict[str, float | int]:
+        """Every field plus ``agent_fps`` and ``env_fps``."""
+        return {**asdict(self), **self.summary()}
+
+
+class TrajectoryRecorder:
+    """A :data:`StepCallback` that keeps the action sequence of chosen episodes (e.g. for videos).
+
+    Args:
+        episode_ids: the episodes to record (``None``: all of them).
+
+    Attributes:
+        actions: ``{episode_id: [action, ...]}`` for the recorded episodes (the final STOP included).
+    """
+
+    def __init__(self, episode_ids: Collection[str] | None = None) -> None:
+        self.episode_ids = None if episode_ids is None else set(episode_ids)
+        self.actions: dict[str, list[int]] = {}
+
+    def __call__(self, env: Any, actions: torch.Tensor) -> None:
+        slots = [
+            i for i, ep in enumerate(env.episodes)
+            if ep is not None and (self.episode_ids is None or ep.episode_id in self.episode_ids)
+        ]
+        if not slots:
+            return
+        active = env.active.tolist()
+        acts = actions.tolist()
+        for i in slots:
+            if active[i]:
+                self.actions.setdefault(env.episodes[i].episode_id, []).append(int(acts[i]))
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _limit_source(env: Any, max_episodes: int | None) -> int | None:
+    """Truncate a fresh static source to ``max_episodes``; returns the number of episodes to run if known."""
+    src = env.source
+    episodes = getattr(src, "episodes", None)
+    if isinstance(episodes, list) and getattr(src, "index", None) == 0:
+        if max_episodes is not None:
+            src.episodes = episodes[: int(max_episodes)]
+        return len(src.episodes)
+    return max_episodes
+
+
+def _order_records(env: Any, records: list[dict]) -> list[dict]:
+    """Records of a static source in the source's order (completion order depends on the batching)."""
+    episodes = getattr(env.source, "episodes", None)
+    if not isinstance(episodes, list):
+        return records
+    pos: dict[str, int] = {}
+    for k, ep in enumerate(episodes):
+        pos.setdefault(ep.episode_id, k)
+    return sorted(records, key=lambda r: pos.get(r["episode_id"], len(pos)))
+
+
+def run_episodes(
+    env: Any,
+    agent: Any,
+    progress: bool = True,
+    max_episodes: int | None = None,
+    callbacks: Sequence[StepCallback] = (),
+    desc: str | None = None,
+) -> tuple[list[dict[str, Any]], Runtime]:
+    """Play every episode of ``env``'s source with ``agent``.
+
+    Args:
+        env: a :class:`~findview.task.FindViewEnv` with ``auto_reset=True``. A static source is played to
+            exhaustion (``env.active`` tells which slots still run); an endless source needs
+            ``max_episodes``.
+        agent: a batched agent (``reset(env_ids, episodes)``, ``act(obs) -> (N,) long``); ``reset`` is
+            called for the slots whose ``env.new_episode`` is set, before ``act`` sees their first
+            observation.
+        progress: show a tqdm progress bar over episodes (on stderr).
+        max_episodes: play only the first ``max_episodes`` episodes. A static source that has not
+            started yet is truncated (so the same episodes run whatever ``num_envs`` is); for other
+            sources the run stops after ``max_episodes`` finished episodes.
+        callbacks: :data:`StepCallback` functions called every step, outside the timed sections.
+        desc: progress bar label.
+
+    Returns:
+        ``(records, runtime)``: the finished episodes' records (the environment's info dicts; in the
+        source's order for a static source, else in completion order) and the :class:`Runtime`.
+
+    Raises:
+        ValueError: endless source without ``max_episodes``, or ``env`` without ``auto_reset``.
+    """
+    if not getattr(env, "auto_reset", True):
+        raise ValueError("run_episodes needs an environment with auto_reset=True")
+    total = _limit_source(env, max_episodes)
+    if total is None and not hasattr(env.source, "__len__"):
+        raise ValueError("run_episodes: an endless episode source needs max_episodes")
+    if total is None:
+        total = len(env.source)
+    device = torch.device(env.device)
+    runtime = Runtime()
+    records: list[dict[str, Any]] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=desc or getattr(agent, "name", "eval"), unit="ep", dynamic_ncols=True, leave=True)
+    t_start = time.perf_counter()
+    try:
+        obs = env.reset()
+        while True:
+            active = env.active
+            n_active = int(active.sum())
+            if n_active == 0 or (max_episodes is not None and len(records) >= max_episodes):
+                break
+            new_ids = torch.nonzero(env.new_episode & active).flatten().tolist()
+            if new_ids:
+                agent.reset(new_ids, [env.episodes[i] for i in new_ids])
+
+            t0 = time.perf_counter()
+            actions = agent.act(obs)
+            _sync(device)
+            runtime.agent_seconds += time.perf_counter() - t0
+            runtime.agent_decisions += n_active
+            for cb in callbacks:
+                cb(env, actions)
+
+            t0 = time.perf_counter()
+            obs, _, _, infos = env.step(actions)
+            _sync(device)
+            runtime.env_seconds += time.perf_counter() - t0
+            runtime.env_steps += n_active
+
+            finished = [info for info in infos if info is not None]
+            if finished:
+                records.extend(finished)
+                if bar is not None:
+                    bar.update(len(finished))
+    finally:
+        if bar is not None:
+            bar.close()
+    if max_episodes is not None:
+        records = records[: int(max_episodes)]
+    records = _order_records(env, records)
+    runtime.episodes = len(records)
+    runtime.wall_seconds = time.perf_counter() - t_start
+    return records, runtime

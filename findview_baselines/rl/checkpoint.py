@@ -1,0 +1,232 @@
+"""Checkpoint files of the PPO trainer and the state they need for an exact resume.
+
+Every checkpoint is written atomically (temp file beside it + ``os.replace``) and holds only tensors and
+plain Python values (dicts, lists, tuples, str, int, float, bool, None), so it loads with
+``torch.load(path, weights_only=True)``. Layout (``format = "findview-ppo"``, ``version = 1``)::
+
+    {
+      "format": "findview-ppo", "version": 1,
+      "signature": {"variant", "hidden_size", "height", "width"},   # Policy.model_signature()
+      "policy": policy.state_dict(),
+      "update": int, "env_steps": int,                             # updates / env steps done
+      "config": {...},                                             # the resolved run config (plain dict)
+      "val": {difficulty: {"eps", "omega_stop", "omega_perf", "spl", "episodes"}} | None,
+      "best_val_eps": float | None,
+      "trainer": {...} | None,                                     # resume state (latest.pth only)
+    }
+
+``trainer`` (see :meth:`findview_baselines.rl.trainer.PPOTrainer.state_dict`) carries the optimizer,
+lr / clip, the difficulty scheduler, the environment (episodes, rotations, episode source and sampler
+RNG), the rollout storage's initial observation / hidden state / masks and every RNG (torch CPU + CUDA,
+numpy, Python ``random``, the mini-batch shuffle generator). ``best.pth`` leaves it out (``None``): it is
+for evaluation and fine-tuning, not for resuming.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+CHECKPOINT_FORMAT = "findview-ppo"
+CHECKPOINT_VERSION = 1
+
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_VERSION",
+    "save_checkpoint",
+    "load_checkpoint",
+    "check_writable",
+    "capture_rng_state",
+    "restore_rng_state",
+    "ResumableSampler",
+]
+
+
+# --------------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------------
+
+
+def save_checkpoint(path: str | os.PathLike, state: Mapping[str, Any]) -> Path:
+    """Write ``state`` to ``path`` atomically: a crash or Ctrl-C never leaves a half-written checkpoint.
+
+    The temp file lives in the same folder (so the rename is atomic) and is removed on failure.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(dict(state), tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the usual permissions
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _umask() -> int:
+    """The process umask (read without changing it for longer than a moment)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: torch.device | str | None = "cpu") -> dict[str, Any]:
+    """Load a findview PPO checkpoint with ``weights_only=True``.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: the file is not a findview PPO checkpoint (message names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # unpickling error, truncated file, foreign pickle, ...
+        raise ValueError(f"{path} is not a loadable findview PPO checkpoint: {type(err).__name__}: {err}") from err
+    if not isinstance(state, dict) or "signature" not in state or "policy" not in state:
+        raise ValueError(f"{path} is not a findview PPO checkpoint (no 'signature' / 'policy' entries)")
+    return state
+
+
+def check_writable(folder: str | os.PathLike, what: str = "output folder") -> Path:
+    """Create ``folder`` (with parents) and prove a file can be written in it; fail early otherwise.
+
+    Works for root too (a path below a regular file can never be created). Returns the absolute path.
+
+    Raises:
+        PermissionError: naming the folder, the OS error and what to do.
+    """
+    folder = Path(folder).expanduser().absolute()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write_test.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise PermissionError(
+            f"{what} {folder} is not writable ({type(err).__name__}: {err.strerror or err}); "
+            f"choose another one, e.g. hydra.run.dir=<writable folder>"
+        ) from err
+    return folder
+
+
+# --------------------------------------------------------------------------------------------------
+# RNG states (as tensors / plain lists, so that weights_only=True can load them)
+# --------------------------------------------------------------------------------------------------
+
+
+def capture_rng_state() -> dict[str, Any]:
+    """States of torch (CPU and every CUDA device), numpy's global RNG and Python's ``random``."""
+    np_state = np.random.get_state()
+    py_state = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "numpy": {
+            "name": str(np_state[0]),
+            "keys": torch.from_numpy(np.asarray(np_state[1], dtype=np.int64)),
+            "pos": int(np_state[2]),
+            "has_gauss": int(np_state[3]),
+            "cached_gauss": float(np_state[4]),
+        },
+        "python": {"version": int(py_state[0]), "state": list(py_state[1]), "gauss_next": py_state[2]},
+    }
+
+
+def restore_rng_state(state: Mapping[str, Any]) -> None:
+    """Inverse of :func:`capture_rng_state` (CUDA states are restored when the device count matches)."""
+    torch.set_rng_state(state["torch"].cpu())
+    cuda_states = list(state.get("cuda") or [])
+    if cuda_states and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all([s.cpu() for s in cuda_states])
+    np_state = state["numpy"]
+    np.random.set_state(
+        (
+            np_state["name"],
+            np_state["keys"].numpy().astype(np.uint32),
+            int(np_state["pos"]),
+            int(np_state["has_gauss"]),
+            float(np_state["cached_gauss"]),
+        )
+    )
+    py_state = state["python"]
+    random.setstate((int(py_state["version"]), tuple(int(x) for x in py_state["state"]), py_state["gauss_next"]))
+
+
+# --------------------------------------------------------------------------------------------------
+# Episode sampler state
+# --------------------------------------------------------------------------------------------------
+
+
+class ResumableSampler:
+    """Wraps a ``findview.dataset.EpisodeSampler`` so that its stream of episodes can be saved and resumed.
+
+    Uses the sampler's own ``state_dict()`` / ``load_state_dict()`` when it has them. Otherwise it saves
+    the sampler's internals (numpy generators ``_rng`` / ``_rot_rng``, the pre-sampled rotation pools
+    ``_pool`` / ``_pos`` and the episode ``count``), converted to tensors / plain values; any other sampler
+    without ``state_dict`` cannot be resumed exactly and raises ``TypeError`` when saved.
+
+    Everything else (``sample``, ``sample_level``, attributes) is forwarded to the wrapped sampler.
+    """
+
+    _INTERNALS = ("_rng", "_rot_rng", "_pool", "_pos", "count")
+
+    def __init__(self, sampler: Any) -> None:
+        self.sampler = sampler
+
+    def __getattr__(self, name: str) -> Any:
+        # only called for attributes not found on the wrapper itself
+        if name == "sampler":  # during unpickling / before __init__
+            raise AttributeError(name)
+        return getattr(self.sampler, name)
+
+    def sample_level(self, level: int) -> Any:
+        return self.sampler.sample_level(level)
+
+    def sample(self, difficulty: str) -> Any:
+        return self.sampler.sample(difficulty)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The wrapped sampler's RNG / buffer state (loadable with ``weights_only=True``)."""
+        own = getattr(self.sampler, "state_dict", None)
+        if callable(own):
+            return {"kind": "native", "state": own()}
+        if not all(hasattr(self.sampler, name) for name in self._INTERNALS):
+            raise TypeError(
+                f"{type(self.sampler).__name__} has no state_dict(); its episode stream cannot be resumed exactly"
+            )
+        s = self.sampler
+        return {
+            "kind": "internals",
+            "rng": s._rng.bit_generator.state,
+            "rot_rng": {d: g.bit_generator.state for d, g in s._rot_rng.items()},
+            "pool": {d: torch.from_numpy(np.ascontiguousarray(p, dtype=np.int64)) for d, p in s._pool.items()},
+            "pos": {d: int(p) for d, p in s._pos.items()},
+            "count": int(s.count),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`state_dict` into the wrapped sampler."""
+        if state["kind"] == "native":
+            self.sampler.load_state_dict(state["state"])
+            return
+        s = self.sampler
+        if not all(hasattr(s, name) for name in self._INTERNALS):
+            raise TypeError(f"cannot restore the saved sampler state into {type(s).__name__}")
+        s._rng.bit_generator.state = state["rng"]
+        for d, g_state in state["rot_rng"].items():
+            s._rot_rng[d].bit_generator.state = g_state
+        s._pool = {d: p.numpy().astype(np.int64) for d, p in state["pool"].items()}
+        s._pos = {d: int(p) for d, p in state["pos"].items()}
+        s.count = int(state["count"])

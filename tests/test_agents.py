@@ -1,0 +1,443 @@
+"""Baseline agents: registry, random, oracle, the paper's orb/sift rules and the rotation agent."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from findview.episode import Episode
+from findview.geometry import l1_distance, wrap_yaw
+from findview.imageio import load_panorama
+from findview_baselines.agents import agent_names, make_agent
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, rgb_to_gray
+from findview_baselines.agents.feature_matching import (
+    FeatureMatchingAgent,
+    detect,
+    displacement_votes,
+    is_oscillating,
+    knn2,
+    parse_d_thresh,
+    vote_action,
+)
+from findview_baselines.agents.rotation import (
+    decompose_relative_rotation,
+    estimate_from_images,
+    kabsch,
+)
+
+FOV, H, W = 90.0, 256, 256
+PANOS = ("pano_aaacisrhqnnvoq.jpg", "pano_abrirqbocvnkye.jpg")  # indoor bedroom, indoor greenhouse
+
+
+# ------------------------------------------------------------------------------------------------
+# helpers
+# ------------------------------------------------------------------------------------------------
+def _equi2pers():
+    from findview.sim import equi2pers
+
+    return equi2pers
+
+
+def render(equi: torch.Tensor, rotations: list[tuple[int, int]], fov: float = FOV) -> torch.Tensor:
+    """Views ``(B, 3, H, W)`` uint8 of ``equi (1, 3, He, We)`` at ``(pitch, yaw)`` degrees."""
+    p = torch.tensor([float(r[0]) for r in rotations], dtype=torch.float64)
+    y = torch.tensor([float(r[1]) for r in rotations], dtype=torch.float64)
+    return _equi2pers()(equi.expand(len(rotations), -1, -1, -1), p, y, fov, H, W, mode="bilinear")
+
+
+@pytest.fixture(scope="module")
+def panos(sun360_mini_files: list[Path]) -> dict[str, torch.Tensor]:
+    by_name = {f.name: f for f in sun360_mini_files}
+    return {n: torch.from_numpy(load_panorama(by_name[n])).permute(2, 0, 1)[None].contiguous() for n in PANOS}
+
+
+def obs_of(view: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
+    return {"view": view, "target": target}
+
+
+def ep(init=(0, 0), target=(0, 20), difficulty="easy", eid="t0") -> Episode:
+    return Episode(eid, "x.jpg", init[0], init[1], target[0], target[1], difficulty=difficulty, seed=7)
+
+
+class TinyEnv:
+    """The task's move rules (SPEC section 2) on one panorama, rendering with equi2pers."""
+
+    def __init__(self, equi: torch.Tensor, episode: Episode, pitch_bound: int = 60) -> None:
+        self.equi, self.ep, self.bound = equi, episode, pitch_bound
+        self.pitch, self.yaw, self.steps = episode.init_pitch, episode.init_yaw, 0
+        self.target = render(equi, [(episode.target_pitch, episode.target_yaw)])
+
+    def obs(self) -> dict[str, torch.Tensor]:
+        return obs_of(render(self.equi, [(self.pitch, self.yaw)]), self.target)
+
+    def step(self, a: int) -> bool:
+        self.steps += 1
+        if a == STOP:
+            return True
+        self.pitch = int(np.clip(self.pitch + (a == UP) - (a == DOWN), -self.bound, self.bound))
+        self.yaw = int(wrap_yaw(self.yaw + (a == RIGHT) - (a == LEFT)))
+        return False
+
+    def eps(self) -> int:
+        return int(l1_distance(self.pitch, self.yaw, self.ep.target_pitch, self.ep.target_yaw))
+
+
+def simulate_oracle_episode(e: Episode, order: str = "pitch_first", pitch_bound: int = 60) -> tuple[int, int, int, int]:
+    """Run the oracle with the task rules (no rendering); returns (final pitch, yaw, steps, last action)."""
+    agent = make_agent("oracle", {"order": order, "pitch_bound": pitch_bound}, 1, "cpu", 0)
+    agent.reset([0], [e])
+    dummy = torch.zeros(1, 3, 4, 4, dtype=torch.uint8)
+    pitch, yaw, steps = e.init_pitch, e.init_yaw, 0
+    for _ in range(1000):
+        a = int(agent.act(obs_of(dummy, dummy))[0])
+        steps += 1
+        if a == STOP:
+            return pitch, yaw, steps, a
+        pitch = int(np.clip(pitch + (a == UP) - (a == DOWN), -pitch_bound, pitch_bound))
+        yaw = int(wrap_yaw(yaw + (a == RIGHT) - (a == LEFT)))
+    raise AssertionError("oracle never stopped")
+
+
+# ------------------------------------------------------------------------------------------------
+# registry and config handling
+# ------------------------------------------------------------------------------------------------
+def test_registry_names_and_errors():
+    assert {"random", "oracle", "orb", "sift", "rotation"} <= set(agent_names())
+    with pytest.raises(ValueError, match="valid agents: .*oracle.*orb.*random.*rotation.*sift"):
+        make_agent("nope", None, 1, "cpu", 0)
+    with pytest.raises(ValueError, match="unknown config keys \\['d_tresh'\\]"):
+        make_agent("orb", {"d_tresh": 50}, 1, "cpu", 0)
+    with pytest.raises(ValueError, match="detector"):
+        make_agent("orb", {"detector": "sift"}, 1, "cpu", 0)
+    a = make_agent("sift", {"name": "sift", "d_thresh": 50}, 2, "cpu", 0)
+    assert isinstance(a, FeatureMatchingAgent) and a.detector == "sift"
+    assert a.d_thresh["hard"] == 50.0
+
+
+def test_agent_yaml_configs(repo_root: Path):
+    from omegaconf import OmegaConf
+
+    for name in ("random", "oracle", "orb", "sift", "rotation"):
+        cfg = OmegaConf.load(repo_root / "configs" / "agent" / f"{name}.yaml")
+        assert cfg.name == name
+        agent = make_agent(name, cfg, 2, "cpu", 0)
+        if name in ("orb", "sift"):
+            assert agent.d_thresh == {"easy": math.inf, "medium": math.inf, "hard": math.inf, "default": math.inf}
+        if name == "rotation":
+            assert agent.fov == 90.0  # oc.select falls back without a sim node
+
+
+def test_parse_d_thresh():
+    assert parse_d_thresh(50)["medium"] == 50.0
+    assert parse_d_thresh("inf")["easy"] == math.inf
+    assert parse_d_thresh(None)["hard"] == math.inf
+    d = parse_d_thresh({"easy": 60, "medium": "inf", "hard": 20})
+    assert (d["easy"], d["medium"], d["hard"]) == (60.0, math.inf, 20.0)
+    assert parse_d_thresh({"hard": 10})["easy"] == math.inf
+    with pytest.raises(ValueError, match="unknown difficulties"):
+        parse_d_thresh({"eazy": 10})
+    with pytest.raises(ValueError):
+        parse_d_thresh(-1)
+
+
+# ------------------------------------------------------------------------------------------------
+# random
+# ------------------------------------------------------------------------------------------------
+def test_random_reproducible():
+    dummy = torch.zeros(3, 3, 4, 4, dtype=torch.uint8)
+
+    def run(seed: int) -> torch.Tensor:
+        a = make_agent("random", None, 3, "cpu", seed)
+        a.reset([0, 1, 2], [ep(), ep(), ep()])
+        return torch.stack([a.act(obs_of(dummy, dummy)) for _ in range(50)])
+
+    r1, r2, r3 = run(1), run(1), run(2)
+    assert torch.equal(r1, r2) and not torch.equal(r1, r3)
+    assert r1.dtype == torch.int64 and r1.shape == (50, 3)
+    assert set(r1.unique().tolist()) == {0, 1, 2, 3, 4}
+
+
+# ------------------------------------------------------------------------------------------------
+# oracle
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("order", ["pitch_first", "yaw_first"])
+@pytest.mark.parametrize(
+    "init,target",
+    [
+        ((0, 0), (5, 20)),
+        ((0, 175), (-3, -170)),  # yaw wrap: 15 degrees to the right across 180
+        ((2, -170), (0, 172)),  # yaw wrap to the left
+        ((60, 10), (48, -5)),  # at the pitch bound
+        ((-60, 0), (60, 0)),  # bound to bound
+        ((0, 0), (0, 180)),  # half turn
+        ((0, 90), (0, -90)),
+    ],
+)
+def test_oracle_shortest_path(order, init, target):
+    e = ep(init, target)
+    pitch, yaw, steps, last = simulate_oracle_episode(e, order)
+    assert last == STOP
+    assert (pitch, yaw) == (target[0], wrap_yaw(target[1]))
+    assert steps == l1_distance(*init, *target) + 1  # L*: SPL 1
+
+
+def test_oracle_batched_and_idle_after_stop():
+    a = make_agent("oracle", None, 2, "cpu", 0)
+    a.reset([0, 1], [ep((0, 0), (0, 2)), ep((0, 0), (-1, 0))])
+    dummy = torch.zeros(2, 3, 4, 4, dtype=torch.uint8)
+    seq = [a.act(obs_of(dummy, dummy)).tolist() for _ in range(4)]
+    assert seq == [[RIGHT, DOWN], [RIGHT, STOP], [STOP, STOP], [STOP, STOP]]
+    with pytest.raises(RuntimeError, match="never reset"):
+        make_agent("oracle", None, 1, "cpu", 0).act(obs_of(dummy[:1], dummy[:1]))
+
+
+# ------------------------------------------------------------------------------------------------
+# the paper's voting rules (pure functions)
+# ------------------------------------------------------------------------------------------------
+def test_displacement_votes_signs():
+    disp = np.array(
+        [
+            [-6.0, 1.0],  # content further left in the target: turn right
+            [6.0, -1.0],  # further right: turn left
+            [1.0, 5.0],  # lower in the target: look up
+            [-1.0, -5.0],  # higher in the target: look down
+            [0.5, -0.5],  # ~0: stop
+        ]
+    )
+    assert displacement_votes(disp, 1.0).tolist() == [RIGHT, LEFT, UP, DOWN, STOP]
+    assert vote_action(np.array([[-3.0, 0], [-4.0, 1], [0, 5.0]])) == RIGHT
+    assert vote_action(np.zeros((0, 2))) is None
+
+
+def test_is_oscillating():
+    assert is_oscillating([LEFT, RIGHT, LEFT], RIGHT, 4)
+    assert is_oscillating([UP, DOWN, UP], DOWN, 4)
+    assert not is_oscillating([RIGHT, LEFT], RIGHT, 4)  # window not full yet
+    assert not is_oscillating([RIGHT, RIGHT, RIGHT], RIGHT, 4)
+    assert not is_oscillating([LEFT, RIGHT, UP], DOWN, 4)
+    assert not is_oscillating([RIGHT, RIGHT, LEFT], RIGHT, 4)  # not alternating
+    assert is_oscillating([RIGHT, RIGHT, LEFT], RIGHT, 4, rule="mixed")
+    assert not is_oscillating([LEFT, RIGHT, LEFT], RIGHT, 1)  # disabled
+
+
+def test_gray_matches_opencv():
+    rng = np.random.default_rng(0)
+    img = torch.from_numpy(rng.integers(0, 256, size=(2, 3, 17, 23), dtype=np.uint8))
+    ours = rgb_to_gray(img)
+    for k in range(2):
+        ref = cv2.cvtColor(np.ascontiguousarray(img[k].permute(1, 2, 0).numpy()), cv2.COLOR_RGB2GRAY)
+        assert np.array_equal(ours[k], ref)
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_knn2_matches_bfmatcher(panos, kind):
+    v = render(panos[PANOS[0]], [(0, 0), (0, 4)])
+    g = rgb_to_gray(v)
+    a, b = detect(kind, g[0]), detect(kind, g[1])
+    dist, idx = knn2(a.des, b.des, kind)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING if kind == "orb" else cv2.NORM_L2)
+    ref = bf.knnMatch(a.des, b.des, k=2)
+    assert len(ref) == len(dist)
+    for q, (m, n) in enumerate(ref):
+        assert np.isclose(dist[q, 0], m.distance, rtol=1e-5) and np.isclose(dist[q, 1], n.distance, rtol=1e-5)
+        assert idx[q, 0] == m.trainIdx or np.isclose(dist[q, 0], dist[q, 1])
+
+
+# ------------------------------------------------------------------------------------------------
+# orb / sift on real renders
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+@pytest.mark.parametrize("pano", PANOS)
+def test_feature_agent_directions(panos, kind, pano):
+    base = (5, 30)
+    cases = [((5, 35), RIGHT), ((5, 25), LEFT), ((10, 30), UP), ((0, 30), DOWN), ((5, 30), STOP)]
+    views = render(panos[pano], [base] + [c[0] for c in cases])
+    n = len(cases)
+    agent = make_agent(kind, None, n, "cpu", 0)
+    agent.reset(list(range(n)), [ep(base, c[0]) for c in cases])
+    actions = agent.act(obs_of(views[:1].expand(n, -1, -1, -1).contiguous(), views[1:].contiguous()))
+    assert actions.tolist() == [c[1] for c in cases]
+    assert actions.dtype == torch.int64 and actions.device == views.device
+    # a slot that said STOP stays idle (STOP) until it is reset
+    again = agent.act(obs_of(views[:1].expand(n, -1, -1, -1).contiguous(), views[1:].contiguous()))
+    assert int(again[-1]) == STOP
+
+
+def test_feature_agent_oscillation_stops(panos):
+    views = render(panos[PANOS[0]], [(5, 30), (5, 33)])  # the votes say RIGHT
+    agent = make_agent("orb", None, 1, "cpu", 0)
+    agent.reset([0], [ep()])
+    agent.states[0].history.extend([LEFT, RIGHT, LEFT])  # the last three actions alternated
+    assert int(agent.act(obs_of(views[:1], views[1:]))[0]) == STOP
+    agent.reset([0], [ep()])
+    agent.states[0].history.extend([RIGHT, RIGHT, RIGHT])
+    assert int(agent.act(obs_of(views[:1], views[1:]))[0]) == RIGHT
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_feature_agent_flat_image_repeats_previous(panos, kind):
+    grey = torch.full((1, 3, H, W), 128, dtype=torch.uint8)
+    real = render(panos[PANOS[0]], [(5, 30)])
+    agent = make_agent(kind, None, 1, "cpu", 3)
+    agent.reset([0], [ep()])
+    first = [int(agent.act(obs_of(grey, real))[0]) for _ in range(3)]
+    assert first[0] in (LEFT, RIGHT) and first == [first[0]] * 3  # seeded left/right, then repeated
+    agent.reset([0], [ep()])
+    agent.states[0].prev = UP
+    assert int(agent.act(obs_of(real, grey))[0]) == UP  # flat target: repeat the previous action
+    # the seeded initial direction is a function of (seed, episode)
+    agent2 = make_agent(kind, None, 1, "cpu", 3)
+    agent2.reset([0], [ep()])
+    assert int(agent2.act(obs_of(grey, real))[0]) == first[0]
+
+
+def test_d_thresh_per_difficulty_drops_votes(panos):
+    views = render(panos[PANOS[0]], [(5, 30), (5, 35)])
+    # d_thresh 0 on hard keeps no match (distances > 0) -> repeat the previous action
+    agent = make_agent("orb", {"d_thresh": {"easy": "inf", "hard": 0}}, 1, "cpu", 0)
+    agent.reset([0], [ep(difficulty="hard")])
+    agent.states[0].prev = DOWN
+    assert int(agent.act(obs_of(views[:1], views[1:]))[0]) == DOWN
+    agent.reset([0], [ep(difficulty="easy")])
+    assert int(agent.act(obs_of(views[:1], views[1:]))[0]) == RIGHT
+
+
+# ------------------------------------------------------------------------------------------------
+# rotation agent
+# ------------------------------------------------------------------------------------------------
+def _rx(a: float) -> np.ndarray:
+    c, s = math.cos(math.radians(a)), math.sin(math.radians(a))
+    return np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+
+
+def _ry(a: float) -> np.ndarray:
+    c, s = math.cos(math.radians(a)), math.sin(math.radians(a))
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+@pytest.mark.parametrize("pc,dyaw,pt", [(7, 10, 7), (-20, -35, 15), (40, 120, -30), (0, 0, 12), (10, -170, 55)])
+def test_decompose_relative_rotation(pc, dyaw, pt):
+    r = _rx(-pc) @ _ry(dyaw) @ _rx(pt)
+    dp, dy, ec, et = decompose_relative_rotation(r)
+    assert dp == pytest.approx(pt - pc, abs=1e-9) and dy == pytest.approx(dyaw, abs=1e-9)
+    if dyaw != 0:
+        assert ec == pytest.approx(pc, abs=1e-6) and et == pytest.approx(pt, abs=1e-6)
+
+
+def test_kabsch_recovers_rotation():
+    rng = np.random.default_rng(0)
+    r = _rx(-12) @ _ry(33) @ _rx(5)
+    src = rng.normal(size=(20, 3))
+    src /= np.linalg.norm(src, axis=1, keepdims=True)
+    assert np.allclose(kabsch(src, src @ r.T), r, atol=1e-9)
+
+
+@pytest.mark.parametrize("dp,dy", [(0, 10), (8, -15), (-20, 30)])
+def test_rotation_estimate_accuracy(panos, dp, dy):
+    base = (5, 30)
+    views = render(panos[PANOS[1]], [base, (base[0] + dp, base[1] + dy)])
+    g = rgb_to_gray(views)
+    est = estimate_from_images(g[0], g[1], FOV)
+    assert est.valid
+    assert abs(est.dpitch - dp) <= 1.0 and abs(est.dyaw - dy) <= 1.0
+    assert est.rounded() == (dp, dy)
+    if dy != 0:
+        assert abs(est.pitch_current - base[0]) <= 1.5  # the absolute pitch is observable too
+
+
+def test_rotation_agent_walks_straight_and_stops(panos):
+    e = ep((5, 30), (-3, 41))
+    env = TinyEnv(panos[PANOS[1]], e)
+    agent = make_agent("rotation", None, 1, "cpu", 0)
+    agent.reset([0], [e])
+    for _ in range(200):
+        if env.step(int(agent.act(env.obs())[0])):
+            break
+    assert env.eps() == 0
+    assert env.steps == l1_distance(5, 30, -3, 41) + 1  # shortest path: SPL 1
+
+
+def test_rotation_agent_identical_and_flat(panos):
+    view = render(panos[PANOS[0]], [(5, 30)])
+    grey = torch.full((1, 3, H, W), 128, dtype=torch.uint8)
+    agent = make_agent("rotation", None, 2, "cpu", 0)
+    agent.reset([0, 1], [ep(eid="a"), ep(eid="b")])
+    obs = obs_of(torch.cat([view, grey]), torch.cat([view, view]))
+    first = agent.act(obs).tolist()
+    assert first[0] == STOP
+    assert first[1] in (LEFT, RIGHT)  # nothing to match: sweep the yaw in one direction
+    sweep = [int(agent.act(obs)[1]) for _ in range(20)]
+    assert sweep == [first[1]] * 20
+
+
+# ------------------------------------------------------------------------------------------------
+# through the real environment
+# ------------------------------------------------------------------------------------------------
+ENV_PITCH_BOUND = 30
+
+
+def _env_run(agent_name: str, episodes: list[Episode], num_envs: int, max_steps: int, cfg=None) -> list[dict]:
+    task = pytest.importorskip("findview.task")
+    sim_mod = pytest.importorskip("findview.sim")
+    if not hasattr(task, "FindViewEnv"):
+        pytest.skip("findview.task.FindViewEnv not available")
+    bank = sim_mod.PanoramaBank("cpu", 256, prefetch_workers=0)
+    # a small pitch bound keeps the simulator's per-pitch grids cheap; the episodes stay well inside it
+    sim = sim_mod.Simulator(bank, FOV, H, W, pitch_bound=ENV_PITCH_BOUND)
+    env = task.FindViewEnv(
+        sim, task.StaticEpisodeSource(episodes), num_envs, max_steps=max_steps, pitch_bound=ENV_PITCH_BOUND, prefetch=0
+    )
+    cfg = dict(cfg or {})
+    if agent_name in ("oracle", "rotation"):
+        cfg["pitch_bound"] = ENV_PITCH_BOUND
+    agent = make_agent(agent_name, cfg, num_envs, "cpu", 0)
+    obs = env.reset()
+    started = [i for i in range(num_envs) if env.episodes[i] is not None]
+    agent.reset(started, [env.episodes[i] for i in started])
+    records: list[dict] = []
+    try:
+        for _ in range(len(episodes) * max_steps + 1):
+            if not bool(env.active.any()):
+                break
+            obs, _, _, infos = env.step(agent.act(obs))
+            records += [r for r in infos if r is not None]
+            new = [i for i in range(num_envs) if bool(env.new_episode[i])]
+            if new:
+                agent.reset(new, [env.episodes[i] for i in new])
+    finally:
+        env.close()
+    assert len(records) == len(episodes)
+    return records
+
+
+@pytest.fixture(scope="module")
+def env_episodes(sun360_mini_files: list[Path]) -> list[Episode]:
+    files = {f.name: str(f) for f in sun360_mini_files}
+    return [
+        Episode("e0", files[PANOS[0]], 5, 30, 12, 45, difficulty="easy", seed=1),
+        Episode("e1", files[PANOS[1]], -10, 170, 0, -165, difficulty="easy", seed=2),
+        Episode("e2", files[PANOS[1]], 0, 0, 20, -40, difficulty="medium", seed=3),
+    ]
+
+
+def test_env_oracle(env_episodes):
+    from findview.metrics import summarize
+
+    recs = _env_run("oracle", env_episodes, 2, 5000)
+    assert all(r["eps"] == 0 and r["called_stop"] and r["steps"] == r["shortest_path"] for r in recs)
+    s = summarize(recs)
+    assert s["easy"]["spl"] == 1.0 and s["medium"]["spl"] == 1.0
+
+
+def test_env_orb_and_rotation(env_episodes):
+    recs = _env_run("orb", env_episodes[:2], 2, 150)
+    for r in recs:
+        assert r["called_stop"] or r["steps"] == 150
+        assert r["eps"] < l1_distance(r["init_pitch"], r["init_yaw"], r["target_pitch"], r["target_yaw"])
+    recs = _env_run("rotation", env_episodes, 2, 300)
+    assert all(r["called_stop"] and r["eps"] == 0 for r in recs)

@@ -1,0 +1,387 @@
+"""tools/eval.py, tools/collect_results.py and the evaluation harness, end to end on a tiny folder
+data set (3 real panoramas, test split only, 1 episode per image per difficulty) with 64x64 views."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+PY = sys.executable
+SMALL = ["sim.height=64", "sim.width=64", "progress=false"]
+METRICS = {"eps", "omega_stop", "omega_perf", "spl", "episodes"}
+EPISODE_KEYS = {
+    "episode_id", "image", "difficulty", "init_pitch", "init_yaw", "target_pitch", "target_yaw",
+    "final_pitch", "final_yaw", "steps", "called_stop", "eps",
+}
+
+
+def run_tool(tool: str, *args: str, cwd: Path | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "OMP_NUM_THREADS": "1"}
+    return subprocess.run(
+        [PY, str(REPO / "tools" / tool), *args], capture_output=True, text=True, cwd=cwd or REPO, timeout=timeout, env=env
+    )
+
+
+def check(proc: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
+    assert proc.returncode == 0, f"exit {proc.returncode}\nstdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}"
+    return proc
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """Small tensors: one intra-op thread is faster (and much faster on a busy machine)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def folder_ds(tmp_path_factory, sun360_mini_files) -> dict[str, Path]:
+    """3 panoramas (512x256) in <root>/<label>/, split [0, 0, 1], 1 episode per image per difficulty."""
+    base = tmp_path_factory.mktemp("folder_ds")
+    root, out = base / "images", base / "data"
+    picks = [f for f in sun360_mini_files if "/indoor/" in f.as_posix()][:2] + [
+        f for f in sun360_mini_files if "/outdoor/" in f.as_posix()
+    ][:1]
+    for k, f in enumerate(picks):
+        img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+        dst = root / f.parent.name / f"pano_{k}.jpg"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(dst), cv2.resize(img, (512, 256), interpolation=cv2.INTER_AREA))
+    check(
+        run_tool(
+            "make_dataset.py", "dataset=folder", f"dataset.root={root}", f"dataset.out_dir={out}",
+            "dataset.split=[0,0,1]", "dataset.episodes_per_image=1", "dataset.episode_fovs=[90]",
+            "dataset.splits_to_make=[test]", "progress=false",
+        )
+    )
+    assert (out / "episodes" / "test_fov90.json").is_file()
+    return {"root": root, "out": out, "base": base}
+
+
+def ds_args(ds: dict[str, Path]) -> list[str]:
+    return ["dataset=folder", f"dataset.root={ds['root']}", f"dataset.out_dir={ds['out']}", "split=test"]
+
+
+def read_summary(run_dir: Path) -> dict:
+    return json.loads((run_dir / "summary.json").read_text())
+
+
+def check_schema(summary: dict, difficulties: set[str]) -> None:
+    assert set(summary) == difficulties | {"runtime"}
+    for d in difficulties:
+        m = summary[d]
+        assert set(m) == METRICS
+        assert isinstance(m["episodes"], int) and m["episodes"] > 0
+        for k in ("eps", "omega_stop", "omega_perf", "spl"):
+            assert isinstance(m[k], float)
+        for k in ("omega_stop", "omega_perf", "spl"):
+            assert 0.0 <= m[k] <= 1.0
+    rt = summary["runtime"]
+    assert set(rt) == {"agent_fps", "env_fps"}
+    assert all(isinstance(v, float) and v > 0 for v in rt.values())
+
+
+def without_runtime(summary: dict) -> dict:
+    return {k: v for k, v in summary.items() if k != "runtime"}
+
+
+# ------------------------------------------------------------------------------------------------
+# tools/eval.py
+# ------------------------------------------------------------------------------------------------
+def test_oracle_end_to_end(folder_ds, tmp_path):
+    out = tmp_path / "oracle"
+    check(run_tool("eval.py", "agent=oracle", *ds_args(folder_ds), *SMALL, f"hydra.run.dir={out}"))
+    summary = read_summary(out)
+    check_schema(summary, {"easy", "medium", "hard"})
+    for d in ("easy", "medium", "hard"):
+        assert summary[d] == {"eps": 0.0, "omega_stop": 1.0, "omega_perf": 1.0, "spl": 1.0, "episodes": 3}
+    lines = (out / "episodes.jsonl").read_text().splitlines()
+    assert len(lines) == 9
+    recs = [json.loads(x) for x in lines]
+    for r in recs:
+        assert EPISODE_KEYS <= set(r)
+        assert (r["final_pitch"], r["final_yaw"]) == (r["target_pitch"], r["target_yaw"])
+        assert r["called_stop"] is True and r["eps"] == 0 and r["steps"] == r["shortest_path"]
+    # records in the episode file's order
+    doc = json.loads((folder_ds["out"] / "episodes" / "test_fov90.json").read_text())
+    assert [r["episode_id"] for r in recs] == [e["episode_id"] for e in doc["episodes"]]
+    md = (out / "summary.md").read_text()
+    assert "easy eps" in md and "hard SPL" in md and "agent FPS" in md and "| oracle |" in md
+    assert (out / ".hydra" / "config.yaml").is_file()
+    assert not list(out.glob(".*.tmp"))
+
+
+def test_random_deterministic(folder_ds, tmp_path):
+    args = ["agent=random", *ds_args(folder_ds), *SMALL, "task.max_steps=100", "num_envs=4", "seed=3"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    check(run_tool("eval.py", *args, f"hydra.run.dir={a}"))
+    check(run_tool("eval.py", *args, f"hydra.run.dir={b}"))
+    sa, sb = read_summary(a), read_summary(b)
+    check_schema(sa, {"easy", "medium", "hard"})
+    assert without_runtime(sa) == without_runtime(sb)
+    assert (a / "episodes.jsonl").read_text() == (b / "episodes.jsonl").read_text()
+    recs = [json.loads(x) for x in (a / "episodes.jsonl").read_text().splitlines()]
+    assert all(r["steps"] <= 100 for r in recs)
+    assert all(r["called_stop"] or r["steps"] == 100 for r in recs)
+
+
+def test_easy_only_with_video(folder_ds, tmp_path):
+    out = tmp_path / "easy"
+    check(run_tool("eval.py", "agent=oracle", *ds_args(folder_ds), *SMALL, "difficulty=easy", "video=1", f"hydra.run.dir={out}"))
+    summary = read_summary(out)
+    check_schema(summary, {"easy"})
+    assert summary["easy"]["episodes"] == 3
+    recs = [json.loads(x) for x in (out / "episodes.jsonl").read_text().splitlines()]
+    assert {r["difficulty"] for r in recs} == {"easy"}
+    videos = sorted((out / "videos").glob("*.mp4"))
+    assert [v.stem for v in videos] == [recs[0]["episode_id"]]
+    cap = cv2.VideoCapture(str(videos[0]))
+    assert cap.isOpened()
+    frames = 0
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames += 1
+        assert frame.shape == (64, 2 * 64 + 2 * 64, 3)  # view | target | panorama (64 x 128)
+    assert frames == recs[0]["steps"] + 1
+
+
+def test_missing_episode_file_says_how_to_make_it(folder_ds, tmp_path):
+    empty = tmp_path / "nothing_here"
+    proc = run_tool(
+        "eval.py", "agent=oracle", "dataset=folder", f"dataset.root={folder_ds['root']}", f"dataset.out_dir={empty}",
+        "split=val", *SMALL, f"hydra.run.dir={tmp_path / 'run'}",
+    )
+    assert proc.returncode == 2
+    assert "python tools/make_dataset.py dataset=folder" in proc.stderr
+    assert f"dataset.out_dir={empty}" in proc.stderr and f"dataset.root={folder_ds['root']}" in proc.stderr
+    assert "val_fov90.json" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "run" / "summary.json").exists()
+
+
+def test_unknown_agent_lists_valid_names(tmp_path):
+    proc = run_tool("eval.py", "agent=no_such_agent", f"hydra.run.dir={tmp_path}")
+    assert proc.returncode != 0
+    err = proc.stderr + proc.stdout
+    for name in ("oracle", "random", "orb", "sift"):
+        assert name in err
+
+
+def test_unknown_agent_name_in_config_lists_registered_agents(folder_ds, tmp_path):
+    from findview_baselines.evaluation.evaluate import EvalError, build_agent
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create({"agent": {"name": "no_such_agent"}, "seed": 0})
+    with pytest.raises(EvalError, match=r"valid agents: .*oracle.*random"):
+        build_agent(cfg, 2, torch.device("cpu"))
+    cfg = OmegaConf.create({"agent": {"name": "ppo"}, "seed": 0, "checkpoint": None})
+    with pytest.raises(EvalError, match="checkpoint="):
+        build_agent(cfg, 2, torch.device("cpu"))
+
+
+def test_ctrl_c_writes_nothing(folder_ds, tmp_path):
+    out = tmp_path / "interrupted"
+    cmd = [PY, str(REPO / "tools" / "eval.py"), "agent=random", *ds_args(folder_ds), *SMALL, "num_envs=2",
+           f"hydra.run.dir={out}"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.time() + 60
+        for line in proc.stdout:  # wait until the episodes run
+            if "evaluating" in line or time.time() > deadline:
+                break
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, rest
+    assert "interrupted" in rest
+    for name in ("summary.json", "summary.md", "episodes.jsonl"):
+        assert not (out / name).exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# threshold search: hydra multirun + tools/collect_results.py
+# ------------------------------------------------------------------------------------------------
+def test_multirun_and_collect_results(folder_ds, tmp_path):
+    sweep = tmp_path / "sweep"
+    check(
+        run_tool(
+            "eval.py", "-m", "agent=orb", "agent.d_thresh=20,inf", *ds_args(folder_ds), *SMALL, "difficulty=easy",
+            "task.max_steps=60", "max_episodes=2", "agent.threads=1", f"hydra.sweep.dir={sweep}",
+        )
+    )
+    runs = sorted(p.parent.parent for p in sweep.rglob(".hydra/config.yaml"))
+    assert len(runs) == 2 and all((r / "summary.json").is_file() for r in runs)
+    # d_thresh=inf reaches the agent as the float inf
+    from omegaconf import OmegaConf
+
+    values = sorted(float(OmegaConf.load(r / ".hydra" / "config.yaml").agent.d_thresh) for r in runs)
+    assert values[0] == 20.0 and math.isinf(values[1])
+
+    tuned, table = tmp_path / "orb_tuned_folder.yaml", tmp_path / "table.md"
+    proc = check(run_tool("collect_results.py", str(sweep), f"out={tuned}", f"table={table}"))
+    text = table.read_text()
+    assert "| difficulty | agent | 20 | inf |" in text
+    assert "| easy | orb |" in text and "**" in text
+    eps = {float(OmegaConf.load(r / ".hydra" / "config.yaml").agent.d_thresh): read_summary(r)["easy"]["eps"] for r in runs}
+    best = min(eps.values())
+    cfg = OmegaConf.load(tuned)
+    assert list(cfg.defaults) == ["orb", "_self_"]
+    assert set(cfg.d_thresh) == {"easy"}
+    assert eps[float(cfg.d_thresh.easy)] == best
+    assert "orb" in proc.stdout
+
+    # the tuned config composes as an agent config (inherits orb.yaml, overrides d_thresh.easy)
+    from hydra import compose, initialize_config_dir
+
+    extra = tmp_path / "extra_configs" / "agent"
+    extra.mkdir(parents=True)
+    (extra / "orb_tuned_folder.yaml").write_text(tuned.read_text())
+    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "configs")):
+        c = compose("eval", overrides=[f"hydra.searchpath=[file://{extra.parent}]", "agent=orb_tuned_folder"])
+    assert c.agent.name == "orb" and c.agent.n_features == 500
+    assert float(c.agent.d_thresh.easy) == float(cfg.d_thresh.easy) and math.isinf(float(c.agent.d_thresh.hard))
+
+
+def test_collect_results_table_layout(tmp_path):
+    """Fake multirun: two agents x two thresholds x one difficulty, ties bold."""
+    from findview_baselines.evaluation.results import best_thresholds, find_runs, threshold_table
+
+    def fake(i: int, agent: str, thresh, eps: float, spl: float) -> None:
+        d = tmp_path / str(i)
+        (d / ".hydra").mkdir(parents=True)
+        t = ".inf" if thresh == "inf" else thresh
+        (d / ".hydra" / "config.yaml").write_text(
+            f"agent:\n  name: {agent}\n  d_thresh: {t}\ndataset:\n  name: toy\nsplit: val\ndifficulty: hard\n"
+        )
+        m = {"eps": eps, "omega_stop": 1.0, "omega_perf": 0.5, "spl": spl, "episodes": 4}
+        (d / "summary.json").write_text(json.dumps({"hard": m, "runtime": {"agent_fps": 1.0, "env_fps": 1.0}}))
+
+    fake(0, "sift", 10, 5.0, 0.1)
+    fake(1, "sift", "inf", 2.5, 0.3)
+    fake(2, "orb", 10, 1.25, 0.2)
+    fake(3, "orb", "inf", 1.25, 0.4)
+    (tmp_path / "4" / ".hydra").mkdir(parents=True)  # an interrupted run: no summary
+    (tmp_path / "4" / ".hydra" / "config.yaml").write_text("agent:\n  name: orb\n  d_thresh: 30\n")
+    warnings: list[str] = []
+    runs = find_runs(tmp_path, warn=warnings.append)
+    assert len(runs) == 4 and len(warnings) == 1
+    table = threshold_table(runs)
+    assert "| hard | orb | **1.25** | **1.25** |" in table
+    assert "| hard | sift | 5.00 | **2.50** |" in table
+    best = best_thresholds(runs)
+    assert best[("sift", "toy")] == {"hard": math.inf}
+    assert best[("orb", "toy")] == {"hard": math.inf}  # tie on eps -> higher SPL
+
+
+# ------------------------------------------------------------------------------------------------
+# harness and PPO agent, in process
+# ------------------------------------------------------------------------------------------------
+def _episodes(ds):
+    from findview.dataset import episode_file, load_episodes
+
+    return load_episodes(episode_file(ds["out"], "test", 90))
+
+
+_SIM = []
+
+
+def _env(episodes, num_envs, max_steps=5000):
+    """An env over ``episodes``; one simulator (and its per-pitch grids) is shared by every test env."""
+    from findview.sim import PanoramaBank, Simulator
+    from findview.task import FindViewEnv, StaticEpisodeSource
+
+    if not _SIM:
+        bank = PanoramaBank("cpu", 64, prefetch_workers=0, min_slots=8)
+        _SIM.append(Simulator(bank, fov=90, height=64, width=64, pitch_bound=60))
+    return FindViewEnv(_SIM[0], StaticEpisodeSource(episodes), num_envs, max_steps=max_steps, prefetch=0)
+
+
+def test_harness_counts_and_batch_invariance(folder_ds):
+    from findview_baselines.agents import make_agent
+    from findview_baselines.evaluation import run_episodes
+
+    episodes = _episodes(folder_ds)
+    out = {}
+    for n in (1, 4):
+        env = _env(episodes, n)
+        records, rt = run_episodes(env, make_agent("oracle", {}, n), progress=False)
+        out[n] = records
+        assert [r["episode_id"] for r in records] == [e.episode_id for e in episodes]
+        assert rt.agent_decisions == rt.env_steps == sum(r["steps"] for r in records)
+        assert rt.episodes == len(episodes) and rt.agent_fps > 0 and rt.env_fps > 0
+    assert out[1] == out[4]
+    env = _env(episodes, 4)
+    records, rt = run_episodes(env, make_agent("oracle", {}, 4), progress=False, max_episodes=5)
+    assert [r["episode_id"] for r in records] == [e.episode_id for e in episodes[:5]]
+
+
+def _tiny_checkpoint(path: Path, height: int = 64, width: int = 64) -> Path:
+    from findview_baselines.rl.policy import Policy
+
+    torch.manual_seed(0)
+    policy = Policy(height, width, "early_fusion", hidden_size=32)
+    torch.save({"signature": policy.model_signature(), "policy": policy.state_dict(), "update": 0}, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory) -> Path:
+    return _tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pth")
+
+
+def test_ppo_agent_checkpoint(folder_ds, tiny_ckpt):
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.evaluation import run_episodes
+
+    ckpt = tiny_ckpt
+    with pytest.raises(ValueError, match=r"64x64.*sim.height=128"):
+        PPOAgent.from_checkpoint(ckpt, 2, "cpu", height=128, width=64)
+    episodes = _episodes(folder_ds)[:4]
+    results = []
+    for sample in (False, True):
+        for n in (2, 4):
+            agent = PPOAgent.from_checkpoint(ckpt, n, "cpu", seed=1, sample=sample, height=64, width=64)
+            records, _ = run_episodes(_env(episodes, n, max_steps=40), agent, progress=False)
+            assert len(records) == 4 and all(r["steps"] <= 40 for r in records)
+            results.append([(r["steps"], r["final_pitch"], r["final_yaw"]) for r in records])
+    assert results[0] == results[1]  # greedy: batch composition does not matter
+    assert results[2] == results[3]  # sampling: one random stream per episode
+
+
+def test_eval_tool_with_checkpoint(folder_ds, tiny_ckpt, tmp_path):
+    ckpt = tiny_ckpt
+    out = tmp_path / "ppo"
+    check(
+        run_tool("eval.py", "agent=ppo", f"checkpoint={ckpt}", *ds_args(folder_ds), *SMALL, "task.max_steps=30",
+                 "max_episodes=4", f"hydra.run.dir={out}")
+    )
+    summary = read_summary(out)
+    assert sum(summary[d]["episodes"] for d in summary if d != "runtime") == 4
+    assert json.loads((out / "run.json").read_text())["agent"] == "ppo"
+
+    # a checkpoint trained on another view size: the message says which sizes
+    from omegaconf import OmegaConf
+
+    from findview_baselines.evaluation.evaluate import EvalError, build_agent
+
+    cfg = OmegaConf.create({"agent": {"name": "ppo"}, "checkpoint": str(ckpt), "seed": 0, "sim": {"height": 256, "width": 256}})
+    with pytest.raises(EvalError, match=r"64x64.*sim.height=256"):
+        build_agent(cfg, 2, torch.device("cpu"))

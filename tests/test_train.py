@@ -1,0 +1,244 @@
+"""The PPO training run (findview_baselines.rl.trainer.train, tools/train.py): exact resume, checkpoint
+files, fine-tuning signature checks, NaN handling and early failure on an unwritable run folder.
+
+Everything runs on CPU with a tiny setup: 48x48 views, 2 envs, 8-step rollouts, GRU 32, 300-step
+episodes, a 10-panorama folder dataset (256x128 textured images) and 3 val episodes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from findview_baselines.rl.trainer import TrainingDiverged, select_val_episodes, train
+
+REPO = Path(__file__).resolve().parents[1]
+SIZE = 48
+
+
+def blob_panorama(seed: int, width: int = 256) -> np.ndarray:
+    """A cheap textured equirectangular image (``width/2 x width`` RGB): smooth colour noise plus shapes."""
+    rng = np.random.default_rng(seed)
+    height = width // 2
+    coarse = rng.integers(0, 256, (4, 8, 3), dtype=np.uint8)
+    image = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
+    for _ in range(40):
+        x, y = (int(v) for v in rng.integers(0, (width, height)))
+        size = int(rng.integers(3, height // 6))
+        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
+        if rng.random() < 0.5:
+            cv2.circle(image, (x, y), size, colour, -1)
+        else:
+            cv2.rectangle(image, (x, y), (x + size, y + size // 2), colour, -1)
+    return image
+
+
+@pytest.fixture(scope="session")
+def panorama_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """10 small textured panoramas (256x128) in one folder."""
+    root = tmp_path_factory.mktemp("panoramas")
+    for i in range(10):
+        cv2.imwrite(str(root / f"pano_{i:03d}.png"), blob_panorama(100 + i))
+    return root
+
+
+@pytest.fixture(scope="session")
+def dataset_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("dataset_out")
+
+
+def dataset_config(root: Path, out_dir: Path) -> DictConfig:
+    """The ``folder`` dataset config pointed at ``root`` (3 val episodes: 1 image x 3 difficulties)."""
+    path = REPO / "configs" / "dataset" / "folder.yaml"
+    base = OmegaConf.load(path) if path.is_file() else OmegaConf.create({"kind": "folder"})
+    base.name = "testfolder"
+    base.root = str(root)
+    base.out_dir = str(out_dir)
+    return base
+
+
+def make_config(root: Path, out_dir: Path, **overrides: Any) -> DictConfig:
+    """configs/train.yaml composed by hand (no Hydra) with the tiny test settings, then ``overrides``."""
+    cfg = OmegaConf.load(REPO / "configs" / "train.yaml")
+    for key in ("defaults", "hydra"):
+        cfg.pop(key)
+    cfg.dataset = dataset_config(root, out_dir)
+    cfg.sim = OmegaConf.load(REPO / "configs" / "sim" / "fov90.yaml")
+    cfg.task = OmegaConf.load(REPO / "configs" / "task" / "default.yaml")
+    cfg.agent = OmegaConf.load(REPO / "configs" / "agent" / "ppo.yaml")
+    tiny = {
+        "sim.height": SIZE, "sim.width": SIZE, "sim.device": "cpu", "sim.prefetch_workers": 0,
+        "task.max_steps": 300,
+        "agent.hidden_size": 32, "agent.rollout_steps": 8, "agent.ppo_epochs": 2,
+        "trainer.num_updates": 6, "trainer.num_envs": 2, "trainer.val_interval": 3, "trainer.val_episodes": 3,
+        "trainer.log_interval": 1, "trainer.checkpoint_interval": 2, "trainer.progress": False,
+    }
+    for key, value in {**tiny, **overrides}.items():
+        OmegaConf.update(cfg, key, value, force_add=True)
+    return cfg
+
+
+@pytest.fixture()
+def make_cfg(panorama_folder: Path, dataset_out: Path):
+    return lambda **overrides: make_config(panorama_folder, dataset_out, **overrides)
+
+
+@pytest.fixture(scope="session")
+def reference_run(panorama_folder: Path, dataset_out: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """6 updates in one go (levels 1, 2, 3 at updates 0, 2, 4; validation at 3 and 6)."""
+    run_dir = tmp_path_factory.mktemp("run_full")
+    result = train(make_config(panorama_folder, dataset_out), run_dir)
+    assert result.completed and result.updates == 6 and result.env_steps == 6 * 8 * 2
+    return run_dir
+
+
+def load(path: Path) -> dict[str, Any]:
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+# --------------------------------------------------------------------------------------------------
+
+
+def test_resume_gives_the_same_weights_as_one_run(make_cfg, reference_run: Path, tmp_path: Path) -> None:
+    """3 updates, stop, re-run the same config -> identical weights / optimizer / env state after 6."""
+    first = train(make_cfg(**{"trainer.stop_after": 3}), tmp_path)
+    assert not first.completed and first.updates == 3
+    assert load(tmp_path / "checkpoints" / "latest.pth")["update"] == 3
+    second = train(make_cfg(), tmp_path)
+    assert second.completed and second.updates == 6
+
+    full = load(reference_run / "checkpoints" / "latest.pth")
+    split = load(tmp_path / "checkpoints" / "latest.pth")
+    assert full["update"] == split["update"] == 6
+    for name, tensor in full["policy"].items():
+        assert torch.equal(tensor, split["policy"][name]), name
+    opt_full, opt_split = full["trainer"]["ppo"]["optimizer"]["state"], split["trainer"]["ppo"]["optimizer"]["state"]
+    for key in opt_full:
+        for field in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(opt_full[key][field], opt_split[key][field])
+    assert full["trainer"]["env"]["episodes"] == split["trainer"]["env"]["episodes"]
+    assert torch.equal(full["trainer"]["storage"]["hidden"], split["trainer"]["storage"]["hidden"])
+    assert full["trainer"]["scheduler"]["current_level"] == split["trainer"]["scheduler"]["current_level"] == 3
+    assert full["val"] == split["val"] and full["best_val_eps"] == split["best_val_eps"]
+
+    # a finished run re-run is a no-op
+    again = train(make_cfg(), tmp_path)
+    assert again.completed and again.updates == 6 and load(tmp_path / "checkpoints" / "latest.pth")["env_steps"] == 96
+
+
+def test_checkpoints_load_with_weights_only(reference_run: Path) -> None:
+    ckpt_dir = reference_run / "checkpoints"
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == ["best.pth", "latest.pth"]  # no temp files left
+    latest, best = load(ckpt_dir / "latest.pth"), load(ckpt_dir / "best.pth")
+    for state in (latest, best):
+        assert state["format"] == "findview-ppo"
+        assert state["signature"] == {"variant": "early_fusion", "hidden_size": 32, "height": SIZE, "width": SIZE}
+        assert isinstance(state["config"], dict) and state["config"]["sim"]["height"] == SIZE
+        assert set(state["val"]) == {"easy", "medium", "hard", "all"}
+    assert best["trainer"] is None and latest["trainer"] is not None
+    assert best["best_val_eps"] == pytest.approx(min(best["val"]["all"]["eps"], latest["best_val_eps"]))
+    assert {"torch", "numpy", "python"} <= set(latest["trainer"]["rng"])
+    assert (reference_run / "resolved_config.yaml").is_file()
+    assert any((reference_run / "tb").iterdir())
+
+
+def test_init_from_loads_weights_and_checks_the_model(make_cfg, reference_run: Path, tmp_path: Path) -> None:
+    ckpt = reference_run / "checkpoints" / "best.pth"
+    with pytest.raises(ValueError, match=r"height is 48 in the checkpoint but 40"):
+        train(make_cfg(**{"init_from": str(ckpt), "sim.height": 40}), tmp_path / "other_size")
+    with pytest.raises(ValueError, match=r"hidden_size is 32 in the checkpoint but 16"):
+        train(make_cfg(**{"init_from": str(ckpt), "agent.hidden_size": 16}), tmp_path / "other_hidden")
+
+    # same model: fine-tuning starts at update 0 with a fresh optimizer from the checkpoint's weights
+    result = train(make_cfg(**{"init_from": str(ckpt), "trainer.num_updates": 1, "trainer.val_at_end": False}), tmp_path / "ft")
+    state = load(result.latest)
+    assert state["update"] == 1 and state["trainer"]["ppo"]["optimizer"]["state"][0]["step"].item() == 2  # 2 epochs
+    start = load(ckpt)["policy"]
+    moved = [name for name, t in state["policy"].items() if not torch.equal(t, start[name])]
+    assert moved  # trained further from the loaded weights
+
+
+def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(make_cfg, tmp_path: Path) -> None:
+    train(make_cfg(**{"trainer.stop_after": 2}), tmp_path)
+    latest = tmp_path / "checkpoints" / "latest.pth"
+    before = (digest(latest), latest.stat().st_mtime_ns)
+    with pytest.raises(TrainingDiverged, match=r"diverged at update 3: .*non-finite.*update 2\) was kept"):
+        train(make_cfg(**{"agent.entropy_coef": math.nan}), tmp_path)
+    assert (digest(latest), latest.stat().st_mtime_ns) == before
+    assert load(latest)["update"] == 2
+
+
+def test_unwritable_run_folder_fails_before_training(tmp_path: Path) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    # the dataset does not even exist: the write check must come first
+    cfg = make_config(tmp_path / "missing_images", tmp_path / "missing_out")
+    with pytest.raises(PermissionError, match=r"run folder .*a_file/run is not writable"):
+        train(cfg, blocker / "run")
+    assert not (tmp_path / "missing_out").exists()
+
+    if os.geteuid() == 0:
+        pytest.skip("running as root: a read-only folder does not block writes (the path-below-a-file case passed)")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        with pytest.raises(PermissionError, match=r"not writable"):
+            train(cfg, locked / "run")
+    finally:
+        locked.chmod(0o700)
+
+
+def test_val_episode_cap_spreads_over_difficulties() -> None:
+    from findview.episode import Episode
+
+    episodes = [
+        Episode(f"{d}-{i}", "x.jpg", 0, 0, 0, 20, difficulty=d) for d in ("easy", "medium", "hard") for i in range(10)
+    ]
+    picked = select_val_episodes(episodes, 7)
+    assert [e.difficulty for e in picked].count("easy") == 3 and len(picked) == 7
+    assert {e.difficulty for e in picked} == {"easy", "medium", "hard"}
+    assert [e.episode_id for e in picked[:3]] == ["easy-0", "easy-3", "easy-6"]
+    assert select_val_episodes(episodes, None) == episodes
+
+
+def test_cli_resumes_the_same_run_folder(panorama_folder: Path, dataset_out: Path, tmp_path: Path) -> None:
+    """tools/train.py with Hydra overrides: the run folder holds .hydra/ and checkpoints; re-running resumes."""
+    if not (REPO / "configs" / "dataset" / "folder.yaml").is_file():
+        pytest.skip("configs/dataset/folder.yaml not available")
+    run_dir = tmp_path / "cli_run"
+    args = [
+        sys.executable, str(REPO / "tools" / "train.py"), "agent=ppo", "dataset=folder",
+        f"dataset.root={panorama_folder}", f"dataset.out_dir={dataset_out}", "dataset.name=testfolder",
+        f"sim.height={SIZE}", f"sim.width={SIZE}", "sim.device=cpu", "task.max_steps=300",
+        "agent.hidden_size=32", "agent.rollout_steps=8", "trainer.num_envs=2", "trainer.num_updates=2",
+        "trainer.val_interval=0", "trainer.val_episodes=3", "trainer.progress=false", f"hydra.run.dir={run_dir}",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    done = subprocess.run(args + ["trainer.stop_after=1"], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (run_dir / ".hydra" / "config.yaml").is_file() and load(run_dir / "checkpoints" / "latest.pth")["update"] == 1
+    done = subprocess.run(args, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "resumed" in done.stdout + done.stderr
+    assert load(run_dir / "checkpoints" / "latest.pth")["update"] == 2
+
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    done = subprocess.run(args[:-1] + [f"hydra.run.dir={blocked}/run"], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode != 0 and "not writable" in done.stderr

@@ -1,0 +1,55 @@
+"""Make a data set's splits and static val/test episode files (and the synthetic images).
+
+Examples::
+
+    python tools/make_dataset.py                                   # built-in synthetic panoramas
+    python tools/make_dataset.py dataset=sun360_indoor dataset.root=/data/SUN360
+    python tools/make_dataset.py dataset=folder dataset.root=/my/panos dataset.out_dir=data/mine \
+        dataset.split=[0,0,1] dataset.episodes_per_image=3
+
+Writes ``<out_dir>/splits.json`` and ``<out_dir>/episodes/<split>_fov<F>.json`` for every split in
+``dataset.splits_to_make`` and every FoV in ``dataset.episode_fovs`` plus ``sim.fov``, then prints a
+summary. Known problems (bad image, missing folder, impossible difficulty...) end the run with a one-line
+``error: ...`` on stderr and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+from omegaconf.errors import OmegaConfBaseException  # noqa: E402
+
+from findview.dataset import SamplingError, prepare_dataset  # noqa: E402
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
+
+
+@hydra.main(version_base="1.3", config_path="../configs", config_name="make_dataset")
+def main(cfg: DictConfig) -> None:
+    try:
+        fovs = [float(f) for f in cfg.dataset.episode_fovs]
+        if float(cfg.sim.fov) not in fovs:
+            fovs.append(float(cfg.sim.fov))
+        summary = prepare_dataset(
+            cfg.dataset,
+            fovs,
+            pitch_bound=int(cfg.task.pitch_bound),
+            max_steps=int(cfg.task.max_steps),
+            force=bool(cfg.force),
+            progress=bool(cfg.progress),
+            log=lambda msg: print(msg, flush=True),
+        )
+    except (ValueError, OSError, SamplingError, OmegaConfBaseException) as e:
+        sys.exit(f"error: {_one_line(e)}")
+    print(summary.format(), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,120 @@
+#!/usr/bin/env python
+"""Draw one episode like the paper's Figure 2 (Hydra; config ``configs/render_episode.yaml``).
+
+The panorama (``pano_height`` x twice that, default twice the view height) shows the initial view's
+outline (red) and the target view's (yellow), projected with the simulator's exact mapping; the two
+perspective views (initial above target) sit to its right. Picture size:
+``max(pano_height, 2 H) x (2 pano_height + W)`` for ``H x W`` views.
+
+Examples::
+
+    python tools/render_episode.py dataset=synthetic split=test episode_index=3 out=episode.png
+    python tools/render_episode.py image=pano.jpg init=[0,0] target=[10,-40] out=episode.png
+
+The PNG is written atomically.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+log = logging.getLogger("findview.render")
+
+
+def _rotation(value, what: str) -> tuple[int, int]:
+    from findview_baselines.evaluation.evaluate import EvalError
+
+    try:
+        seq = list(OmegaConf.to_container(value) if OmegaConf.is_config(value) else value)
+        if len(seq) != 2 or any(float(x) != int(float(x)) for x in seq):
+            raise ValueError
+        return int(float(seq[0])), int(float(seq[1]))
+    except (TypeError, ValueError):
+        raise EvalError(f"{what} must be [pitch, yaw] in integer degrees, got {value!r}") from None
+
+
+def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
+    """Make the picture; returns the PNG path."""
+    import cv2
+
+    from findview.imageio import load_panorama
+    from findview.geometry import wrap_yaw
+    from findview.utils import atomic_write
+    from findview_baselines.evaluation.evaluate import EvalError, resolve_episodes
+    from findview_baselines.evaluation.viz import episode_figure
+
+    fov, height, width = float(cfg.sim.fov), int(cfg.sim.height), int(cfg.sim.width)
+    pitch_bound = int(cfg.task.pitch_bound)
+    explicit = [k for k in ("image", "init", "target") if cfg.get(k) is not None]
+    if explicit:
+        missing = [k for k in ("image", "init", "target") if cfg.get(k) is None]
+        if missing:
+            raise EvalError(f"explicit mode needs image=, init= and target=; missing: {', '.join(missing)}")
+        image = str(Path(str(cfg.image)).expanduser())
+        init, target = _rotation(cfg.init, "init"), _rotation(cfg.target, "target")
+        name = Path(image).stem
+    else:
+        episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides)
+        k = int(cfg.episode_index)
+        if not 0 <= k < len(episodes):
+            raise EvalError(f"episode_index={k} is out of range: {path} holds {len(episodes)} episodes")
+        ep = episodes[k]
+        image, init, target, name = ep.image, (ep.init_pitch, ep.init_yaw), (ep.target_pitch, ep.target_yaw), ep.episode_id
+    for what, (p, _) in (("init", init), ("target", target)):
+        if abs(p) > pitch_bound:
+            raise EvalError(f"{what} pitch {p} is outside [-{pitch_bound}, {pitch_bound}] (task.pitch_bound)")
+    init = (init[0], int(wrap_yaw(init[1])))
+    target = (target[0], int(wrap_yaw(target[1])))
+    try:
+        pano = load_panorama(image)
+    except (OSError, ValueError) as err:
+        raise EvalError(str(err)) from err
+    fig = episode_figure(
+        pano, init, target, fov, height, width, str(cfg.sim.mode), cfg.get("pano_height"), bool(cfg.get("labels", True))
+    )
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    out = Path(str(cfg.out)).expanduser() if cfg.get("out") else run_dir / f"{safe}.png"
+    if out.suffix.lower() != ".png":
+        raise EvalError(f"out= must name a .png file, got {out}")
+
+    def _write(tmp: str) -> None:
+        ok, buf = cv2.imencode(".png", cv2.cvtColor(fig, cv2.COLOR_RGB2BGR))
+        if not ok:
+            raise RuntimeError("PNG encoding failed")
+        with open(tmp, "wb") as f:
+            f.write(buf.tobytes())
+
+    atomic_write(out, _write)
+    log.info("episode %s: init %s, target %s -> %s (%dx%d)", name, init, target, out, fig.shape[1], fig.shape[0])
+    return out
+
+
+@hydra.main(version_base="1.3", config_path="../configs", config_name="render_episode")
+def main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    from findview_baselines.evaluation.evaluate import EvalError
+
+    hc = HydraConfig.get()
+    try:
+        out = render(cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices), list(hc.overrides.task))
+    except EvalError as err:
+        print(f"render_episode: error: {err}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("render_episode: interrupted; nothing was written", file=sys.stderr)
+        sys.exit(130)
+    print(out)
+
+
+if __name__ == "__main__":
+    main()
