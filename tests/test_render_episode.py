@@ -48,13 +48,13 @@ def one_image_ds(tmp_path_factory, small_pano) -> dict[str, Path]:
     root, out_dir = base / "images", base / "data"
     (root / "room").mkdir(parents=True)
     (root / "room" / "pano.jpg").write_bytes(small_pano.read_bytes())
-    make = subprocess.run(
-        [sys.executable, str(REPO / "tools" / "make_dataset.py"), "dataset=folder", f"dataset.root={root}",
-         f"dataset.out_dir={out_dir}", "dataset.split=[0,0,1]", "dataset.episode_fovs=[90]",
-         "dataset.splits_to_make=[test]", "progress=false"],
-        capture_output=True, text=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=120,
+    from findview.dataset import prepare_dataset
+
+    prepare_dataset(
+        {"name": "one", "kind": "folder", "root": str(root), "out_dir": str(out_dir), "split": [0, 0, 1],
+         "episode_fovs": [90], "splits_to_make": ["test"]},
+        [90], progress=False,
     )
-    assert make.returncode == 0, make.stderr
     return {"root": root, "out": out_dir}
 
 

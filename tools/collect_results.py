@@ -89,7 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for (agent, dataset), thresholds in best.items():
         path = Path(args.out) if args.out else REPO / "configs" / "agent" / f"{agent}_tuned_{dataset}.yaml"
-        write_text(path, tuned_config_text(agent, dataset, thresholds, source=str(root)))
+        splits = sorted({r.split for r in runs if r.agent == agent and r.dataset == dataset})
+        split = "val" if "val" in splits else ",".join(splits)
+        write_text(path, tuned_config_text(agent, dataset, thresholds, source=str(root), split=split))
         picks = ", ".join(f"{d}={format_threshold(t)}" for d, t in thresholds.items())
         print(f"best d_thresh for {agent} on {dataset}: {picks} -> {path}")
     return 0

@@ -11,8 +11,9 @@ Examples::
 
 The run folder (``hydra.run.dir``) receives ``episodes.jsonl`` (one record per episode), ``summary.json``
 (``{difficulty: {eps, omega_stop, omega_perf, spl, episodes}, runtime: {agent_fps, env_fps}}``),
-``summary.md`` (the paper's table layout), ``run.json`` and ``videos/`` (``video=N``), all written
-atomically once every episode is done. Ctrl-C writes nothing and exits with status 130; configuration
+``summary.md`` (the paper's table layout), ``run.json`` (run details, detailed timing),
+``config_resolved.yaml`` and ``videos/`` (``video=N``), all written atomically once every episode is
+done. Ctrl-C writes nothing and exits with status 130; configuration
 errors print a message and exit with status 2.
 """
 

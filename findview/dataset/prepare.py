@@ -120,7 +120,7 @@ def dataset_settings(cfg: Any) -> dict[str, Any]:
     for f in st["episode_fovs"]:
         check_fov(f)
     if kind == "synthetic":
-        st["num_images"] = int(raw.get("num_images") or 20)
+        st["num_images"] = int(raw.get("num_images") or 40)
         st["seed"] = int(raw.get("seed") or 0)
         st["width"] = int(raw.get("width") or 1024)
         st["labels"] = [str(x) for x in (raw.get("labels") or SCENE_KINDS)]
@@ -236,7 +236,9 @@ def prepare_dataset(
     entries: list[ImageEntry] | None = None
     if st["kind"] == "synthetic":
         say(f"synthetic images under {root}")
-        entries = ensure_synthetic_images(root, st["num_images"], st["seed"], st["width"], st["labels"], progress)
+        entries = ensure_synthetic_images(
+            root, st["num_images"], st["seed"], st["width"], st["labels"], progress, workers=st["workers"]
+        )
 
     splits_path = out_dir / SPLITS_FILE
     reused = False

@@ -27,9 +27,9 @@ quality 95) with a manifest ``<root>/synthetic.json``, regenerating only when th
 from __future__ import annotations
 
 import colorsys
-import json
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -1082,11 +1082,12 @@ def synthetic_image_seed(seed: int, index: int) -> int:
 
 def ensure_synthetic_images(
     root: str | os.PathLike,
-    num_images: int = 20,
+    num_images: int = 40,
     seed: int = 0,
     width: int = 1024,
     labels: Sequence[str] = SCENE_KINDS,
     progress: bool = True,
+    workers: int | None = None,
 ) -> list[ImageEntry]:
     """Generate (once) the synthetic data set under ``root`` and return its images.
 
@@ -1119,17 +1120,27 @@ def ensure_synthetic_images(
         for stale in root.glob("*/synth_*.jpg"):
             if str(stale) not in keep:
                 stale.unlink()
-    todo = range(len(files))
-    if progress:
-        from tqdm import tqdm
-
-        todo = tqdm(todo, desc="generating synthetic panoramas", unit="img", leave=False)
-    for i in todo:
+    def make(i: int) -> None:
         rel, label = files[i]
         img = generate_panorama(synthetic_image_seed(seed, i), label, width)
         ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
         if not ok:  # pragma: no cover
             raise DatasetError(f"could not encode synthetic image {rel}")
-        atomic_write(root / rel, lambda tmp, b=buf: b.tofile(tmp))
+        atomic_write(root / rel, lambda tmp: buf.tofile(tmp))
+
+    workers = max(1, workers or min(4, os.cpu_count() or 1))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(files), desc="generating synthetic panoramas", unit="img", leave=False)
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for _ in pool.map(make, range(len(files))):
+                if bar is not None:
+                    bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
     write_json(manifest, {"params": params, "images": [{"image": rel, "label": label} for rel, label in files]})
     return entries

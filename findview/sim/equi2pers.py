@@ -288,15 +288,16 @@ def _equi2pers_opencv(equi: torch.Tensor, u: torch.Tensor, v: torch.Tensor, shif
     interp = cv2.INTER_LINEAR if mode == "bilinear" else cv2.INTER_NEAREST
     out = torch.empty((B, C, height, width), dtype=equi.dtype)
     out_np = out.numpy()
-    hwc = equi.permute(0, 2, 3, 1)
-    channels_last = hwc.is_contiguous() and C <= 4
-    planes = None if channels_last else equi.contiguous().numpy()
     for k, sh in enumerate(shift.tolist()):
         mapx = u[k].numpy() + np.float32(sh)  # u in [0, We), shift in [-We/2, We/2]: BORDER_WRAP wraps the rest
-        if channels_last:
-            res = cv2.remap(hwc[k].numpy(), mapx, v[k].numpy(), interp, borderMode=cv2.BORDER_WRAP)
+        mapy = v[k].numpy()
+        img = equi[k]  # per view, so expanded / strided batches never copy the whole batch
+        hwc = img.permute(1, 2, 0)
+        if hwc.is_contiguous() and C <= 4:  # channels-last storage: one remap for all channels
+            res = cv2.remap(hwc.numpy(), mapx, mapy, interp, borderMode=cv2.BORDER_WRAP)
             out_np[k] = res.reshape(height, width, C).transpose(2, 0, 1)
         else:
+            planes = img.contiguous().numpy()
             for c in range(C):
-                cv2.remap(planes[k, c], mapx, v[k].numpy(), interp, dst=out_np[k, c], borderMode=cv2.BORDER_WRAP)
+                cv2.remap(planes[c], mapx, mapy, interp, dst=out_np[k, c], borderMode=cv2.BORDER_WRAP)
     return out

@@ -140,8 +140,10 @@ def detect(kind: str, gray: np.ndarray, n_features: int = 500) -> Features:
 def knn2(des_query: np.ndarray, des_train: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
     """Brute-force 2 nearest neighbours of each query descriptor among the train descriptors.
 
-    Uses ``cv2.batchDistance``, the kernel behind ``cv2.BFMatcher.knnMatch`` (same distances, same
-    neighbours), without building ``DMatch`` objects.
+    ORB (Hamming): ``cv2.batchDistance``, the kernel behind ``cv2.BFMatcher.knnMatch`` (same distances,
+    same neighbours), without building ``DMatch`` objects. SIFT (L2): the exhaustive distance matrix
+    ``|q|^2 + |t|^2 - 2 q.t`` as one float32 matrix product (3-4x faster than OpenCV's loop on 2
+    cores; distances agree with ``BFMatcher`` to ~1e-4 relative, so only exact ties may differ).
 
     Returns:
         ``dist (Q, 2)`` float32 descriptor distances (Hamming bit count or L2 norm), ascending, and
@@ -152,8 +154,16 @@ def knn2(des_query: np.ndarray, des_train: np.ndarray, kind: str) -> tuple[np.nd
     if q == 0 or len(des_train) == 0:
         return np.zeros((q, 2), np.float32) + np.inf, np.full((q, 2), -1, np.int32)
     k = min(2, len(des_train))
-    dist, idx = cv2.batchDistance(des_query, des_train, -1, normType=norm_type(kind), K=k)
-    dist = dist.astype(np.float32, copy=False)
+    if kind == "sift":
+        a = torch.from_numpy(np.ascontiguousarray(des_query, dtype=np.float32))
+        b = torch.from_numpy(np.ascontiguousarray(des_train, dtype=np.float32))
+        d2 = (a * a).sum(1, keepdim=True) + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
+        top = torch.topk(d2, k, dim=1, largest=False, sorted=True)
+        dist = top.values.clamp_min_(0.0).sqrt_().numpy()
+        idx = top.indices.to(torch.int32).numpy()
+    else:
+        dist, idx = cv2.batchDistance(des_query, des_train, -1, normType=norm_type(kind), K=k)
+        dist = dist.astype(np.float32, copy=False)
     if k == 1:
         dist = np.concatenate([dist, np.full((q, 1), np.inf, np.float32)], axis=1)
         idx = np.concatenate([idx, np.full((q, 1), -1, np.int32)], axis=1)

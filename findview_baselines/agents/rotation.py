@@ -202,8 +202,9 @@ def estimate_relative_rotation(
         return est
     rots = kabsch(src[ok], dst[ok])  # (K', 3, 3)
     cos_thr = math.cos(inlier_rad)
-    pred = np.einsum("kij,mj->kmi", rots, bear_tgt)  # (K', M, 3)
-    cosines = np.einsum("kmi,mi->km", pred, bear_cur)
+    # cos(angle(c_m, R t_m)) = sum_ij c_mi R_ij t_mj: one (K', 9) x (9, M) product
+    outer = (bear_cur[:, :, None] * bear_tgt[:, None, :]).reshape(m, 9)
+    cosines = rots.reshape(-1, 9) @ outer.T  # (K', M)
     counts = (cosines > cos_thr).sum(axis=1)
     best = int(np.argmax(counts))
     inl = cosines[best] > cos_thr

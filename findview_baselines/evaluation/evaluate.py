@@ -54,26 +54,26 @@ def _get(cfg: Any, key: str, default: Any = None) -> Any:
 def make_dataset_command(cfg: DictConfig, dataset_choice: str | None = None, overrides: Sequence[str] = ()) -> str:
     """The ``tools/make_dataset.py`` command that writes the episode file this evaluation needs.
 
-    It repeats the ``dataset`` choice and every ``dataset.*`` override of the eval command and, when the
-    data set config lists the FoVs / splits to make, adds ``sim.fov`` / ``split`` to them.
+    It repeats the ``dataset`` choice and the eval command's overrides that shape the episode files
+    (``dataset.*``, ``sim`` / ``sim.fov``, ``task.pitch_bound``, ``task.max_steps``), and adds
+    ``sim.fov`` / ``dataset.splits_to_make`` when the data set config would not make this FoV / split.
     """
     name = dataset_choice or str(_get(cfg, "dataset.name", "<name>"))
     parts = ["python tools/make_dataset.py", f"dataset={name}"]
     given: set[str] = set()
     for o in overrides:
         key = o.split("=", 1)[0].lstrip("+~")
-        if key.startswith("dataset."):
+        if key.startswith("dataset.") or key in ("sim", "sim.fov", "task.pitch_bound", "task.max_steps"):
             parts.append(o)
             given.add(key)
     if "dataset.root" not in given and _get(cfg, "dataset.kind") != "synthetic" and _get(cfg, "dataset.root") in (None, "", "???"):
         parts.append("dataset.root=<folder with the panoramas>")
     fov = float(_get(cfg, "sim.fov", 90))
     fovs = _get(cfg, "dataset.episode_fovs")
-    if fovs is not None and "dataset.episode_fovs" not in given:
-        fovs = [float(f) for f in (fovs if isinstance(fovs, Sequence) or OmegaConf.is_list(fovs) else [fovs])]
+    if fovs is not None and not given & {"sim", "sim.fov", "dataset.episode_fovs"}:
+        fovs = [float(f) for f in (fovs if OmegaConf.is_list(fovs) or isinstance(fovs, Sequence) else [fovs])]
         if fov not in fovs:
-            listed = ",".join(f"{f:g}" for f in [*fovs, fov])
-            parts.append(f"dataset.episode_fovs=[{listed}]")
+            parts.append(f"sim.fov={fov:g}")
     splits = _get(cfg, "dataset.splits_to_make")
     split = str(_get(cfg, "split", "test"))
     if splits is not None and "dataset.splits_to_make" not in given:
@@ -336,6 +336,11 @@ def evaluate(
         "device": str(device),
         "checkpoint": _get(cfg, "checkpoint"),
     }
-    summary = write_results(out, records, runtime.to_dict(), agent_name, meta)
+    try:
+        resolved = OmegaConf.to_yaml(cfg, resolve=True)
+    except Exception as err:  # an unresolvable interpolation must not lose the results
+        log.warning("could not resolve the config for config_resolved.yaml: %s", err)
+        resolved = None
+    summary = write_results(out, records, runtime.to_dict(), agent_name, meta, resolved)
     log.info("summary: %s", out / "summary.md")
     return summary

@@ -115,13 +115,17 @@ def write_results(
     runtime: Mapping[str, Any],
     agent: str,
     meta: Mapping[str, Any] | None = None,
+    resolved_config: str | None = None,
 ) -> dict[str, Any]:
-    """Write ``episodes.jsonl``, ``run.json`` (meta + detailed runtime), ``summary.md`` and, last,
-    ``summary.json`` into ``out_dir``, each atomically. Returns the summary."""
+    """Write ``episodes.jsonl``, ``run.json`` (meta + detailed runtime), ``config_resolved.yaml`` (when
+    ``resolved_config`` is given), ``summary.md`` and, last, ``summary.json`` into ``out_dir``, each
+    atomically. Returns the summary."""
     out = Path(out_dir)
     summary = make_summary(records, runtime)
     _write_jsonl(out / "episodes.jsonl", records)
     write_json(out / "run.json", {"agent": agent, **dict(meta or {}), "runtime": dict(runtime)})
+    if resolved_config is not None:
+        write_text(out / "config_resolved.yaml", resolved_config)
     write_text(out / "summary.md", summary_markdown(summary, agent, meta))
     write_json(out / "summary.json", summary)
     return summary
@@ -279,11 +283,15 @@ def threshold_table(runs: Sequence[EvalRun], metric: str = "eps") -> str:
 
 def best_thresholds(runs: Sequence[EvalRun]) -> dict[tuple[str, str], dict[str, float]]:
     """``{(agent, dataset): {difficulty: best d_thresh}}``: the lowest mean ``eps``; ties go to the
-    higher SPL, then to the smaller threshold (the paper notes tied thresholds give identical runs)."""
+    higher SPL, then to the smaller threshold (the paper notes tied thresholds give identical runs).
+
+    When the runs hold several splits of one data set, the ``val`` runs decide (the paper tunes on val).
+    """
     eps = _collect(runs, "eps")
     spl = _collect(runs, "spl")
     best: dict[tuple[str, str], dict[str, float]] = {}
-    for (dataset, split, agent), per_diff in sorted(eps.items()):
+    # val last, so that its picks overwrite any other split's
+    for (dataset, split, agent), per_diff in sorted(eps.items(), key=lambda kv: (kv[0][1] == "val", kv[0])):
         for d, row in per_diff.items():
             candidates = [t for t, v in row.items() if not math.isnan(v)]
             if not candidates:
@@ -300,13 +308,15 @@ def _yaml_number(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else repr(float(x))
 
 
-def tuned_config_text(agent: str, dataset: str, thresholds: Mapping[str, float], source: str = "") -> str:
+def tuned_config_text(
+    agent: str, dataset: str, thresholds: Mapping[str, float], source: str = "", split: str = "val"
+) -> str:
     """An ``agent`` group config that extends ``<agent>.yaml`` with the tuned ``d_thresh`` per difficulty.
 
     Difficulties without a tuned value keep the base config's threshold.
     """
     lines = [
-        f"# {agent} with d_thresh tuned on the {dataset} validation episodes (lowest mean eps per difficulty),",
+        f"# {agent} with d_thresh tuned on the {dataset} {split} episodes (lowest mean eps per difficulty),",
         "# written by tools/collect_results.py" + (f" from {source}" if source else "") + ".",
         f"# Use it with: python tools/eval.py agent={agent}_tuned_{dataset} dataset={dataset}",
         "defaults:",
