@@ -265,9 +265,10 @@ def test_feature_agent_directions(panos, kind, pano):
     actions = agent.act(obs_of(views[:1].expand(n, -1, -1, -1).contiguous(), views[1:].contiguous()))
     assert actions.tolist() == [c[1] for c in cases]
     assert actions.dtype == torch.int64 and actions.device == views.device
-    # a slot that said STOP stays idle (STOP) until it is reset
+    # a slot that said STOP stays idle (STOP) until it is reset; a None episode idles a slot too
+    agent.reset([0], [None])
     again = agent.act(obs_of(views[:1].expand(n, -1, -1, -1).contiguous(), views[1:].contiguous()))
-    assert int(again[-1]) == STOP
+    assert again.tolist() == [STOP] + [c[1] for c in cases[1:-1]] + [STOP]
 
 
 def test_feature_agent_oscillation_stops(panos):

@@ -120,7 +120,8 @@ def test_oracle_end_to_end(folder_ds, tmp_path):
     assert [r["episode_id"] for r in recs] == [e["episode_id"] for e in doc["episodes"]]
     md = (out / "summary.md").read_text()
     assert "easy eps" in md and "hard SPL" in md and "agent FPS" in md and "| oracle |" in md
-    assert (out / ".hydra" / "config.yaml").is_file()
+    assert (out / ".hydra" / "config.yaml").is_file() and (out / "config_resolved.yaml").is_file()
+    assert json.loads((out / "run.json").read_text())["runtime"]["agent_decisions"] == sum(r["steps"] for r in recs)
     assert not list(out.glob(".*.tmp"))
 
 
@@ -180,6 +181,18 @@ def test_unknown_agent_lists_valid_names(tmp_path):
     err = proc.stderr + proc.stdout
     for name in ("oracle", "random", "orb", "sift"):
         assert name in err
+
+
+def test_difficulty_filter():
+    from findview.episode import Episode
+    from findview_baselines.evaluation.evaluate import EvalError, filter_episodes
+
+    eps = [Episode(f"e{i}", "x.jpg", 0, 0, 0, 20, difficulty=d) for i, d in enumerate(["easy", "hard", "easy", "medium"])]
+    assert [e.episode_id for e in filter_episodes(eps, "easy")] == ["e0", "e2"]
+    assert [e.episode_id for e in filter_episodes(eps, None, 3)] == ["e0", "e1", "e2"]
+    assert [e.episode_id for e in filter_episodes(eps, ["hard", "medium"])] == ["e1", "e3"]
+    with pytest.raises(EvalError, match="valid: easy, medium, hard"):
+        filter_episodes(eps, "extreme")
 
 
 def test_unknown_agent_name_in_config_lists_registered_agents(folder_ds, tmp_path):

@@ -13,7 +13,8 @@ in the paper) and its identity (``episode_id``/``seed``, to seed their per-episo
 episode's trajectory does not depend on which slot or batch it ran in).
 
 A slot whose agent answered STOP keeps answering STOP (without any work) until it is reset: inactive
-slots of an exhausted static source cost nothing.
+slots of an exhausted static source cost nothing. ``reset`` with a ``None`` episode idles a slot the same
+way (e.g. a slot whose episode was force-stopped at ``T`` and whose source is exhausted).
 """
 
 from __future__ import annotations

@@ -428,9 +428,11 @@ class FeatureMatchingAgent(Agent):
         )
 
     def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
+        """Start ``episodes`` in slots ``env_ids``; a ``None`` episode idles the slot (STOP, no work)."""
         super().reset(env_ids, episodes)
         for i, ep in zip(env_ids, episodes):
             self.states[int(i)] = self._fresh_state(ep)
+            self.states[int(i)].done = ep is None
 
     def threshold(self, i: int) -> float:
         """``d_thresh`` of slot ``i`` (its episode's difficulty)."""

@@ -395,9 +395,11 @@ class RotationAgent(Agent):
         return _Slot(rng=rng, sweep_dir=LEFT if rng.integers(0, 2) == 0 else RIGHT)
 
     def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
+        """Start ``episodes`` in slots ``env_ids``; a ``None`` episode idles the slot (STOP, no work)."""
         super().reset(env_ids, episodes)
         for i, ep in zip(env_ids, episodes):
             self.slots[int(i)] = self._fresh(ep)
+            self.slots[int(i)].done = ep is None
 
     # policy --------------------------------------------------------------------------------------
     def needs_estimate(self, s: _Slot) -> bool:

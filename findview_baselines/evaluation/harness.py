@@ -136,7 +136,7 @@ def run_episodes(
             ``max_episodes``.
         agent: a batched agent (``reset(env_ids, episodes)``, ``act(obs) -> (N,) long``); ``reset`` is
             called for the slots whose ``env.new_episode`` is set, before ``act`` sees their first
-            observation.
+            observation, and with ``None`` episodes for slots that go idle (their source ran out).
         progress: show a tqdm progress bar over episodes (on stderr).
         max_episodes: play only the first ``max_episodes`` episodes. A static source that has not
             started yet is truncated (so the same episodes run whatever ``num_envs`` is); for other
@@ -170,7 +170,7 @@ def run_episodes(
     try:
         obs = env.reset()
         while True:
-            active = env.active
+            active = env.active.clone()
             n_active = int(active.sum())
             if n_active == 0 or (max_episodes is not None and len(records) >= max_episodes):
                 break
@@ -192,6 +192,10 @@ def run_episodes(
             runtime.env_seconds += time.perf_counter() - t0
             runtime.env_steps += n_active
 
+            # slots whose source ran out: idle the agent there (no more work for those slots)
+            idle = torch.nonzero(active & ~env.active).flatten().tolist()
+            if idle:
+                agent.reset(idle, [None] * len(idle))
             finished = [info for info in infos if info is not None]
             if finished:
                 records.extend(finished)
