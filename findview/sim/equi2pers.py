@@ -274,6 +274,14 @@ def equi2pers(
     return to_output_dtype(out, equi.dtype).contiguous()
 
 
+def _wrapped(u: "np.ndarray", shift: float, equi_width: int) -> "np.ndarray":
+    """``u + shift`` folded into ``[0, We)`` (``u`` in ``[0, We)``, ``|shift| <= We``): keeps OpenCV on its
+    fast in-range path (only the seam column needs ``BORDER_WRAP``)."""
+    m = u + np.float32(shift % equi_width)
+    m[m >= equi_width] -= equi_width
+    return m
+
+
 def _equi2pers_opencv(equi: torch.Tensor, u: torch.Tensor, v: torch.Tensor, shift: torch.Tensor, mode: str) -> torch.Tensor:
     """CPU path: ``cv2.remap`` with wrap-around borders, per view (channels-last input) or per plane.
 
@@ -289,7 +297,7 @@ def _equi2pers_opencv(equi: torch.Tensor, u: torch.Tensor, v: torch.Tensor, shif
     out = torch.empty((B, C, height, width), dtype=equi.dtype)
     out_np = out.numpy()
     for k, sh in enumerate(shift.tolist()):
-        mapx = u[k].numpy() + np.float32(sh)  # u in [0, We), shift in [-We/2, We/2]: BORDER_WRAP wraps the rest
+        mapx = _wrapped(u[k].numpy(), sh, We)
         mapy = v[k].numpy()
         img = equi[k]  # per view, so expanded / strided batches never copy the whole batch
         hwc = img.permute(1, 2, 0)

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from findview.sim.bank import PanoramaBank
-from findview.sim.equi2pers import MODES, sample_equirect, sample_points, to_output_dtype
+from findview.sim.equi2pers import MODES, _wrapped, sample_equirect, sample_points, to_output_dtype
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class Simulator:
         out_np = out.numpy()
         interp = cv2.INTER_LINEAR if self.mode == "bilinear" else cv2.INTER_NEAREST
         for r, s, p, sh in zip(rows.tolist(), slot_l, pidx, shift):
-            mapx = self._u_np[p] + np.float32(sh)  # in [-We/2, 1.5 We): BORDER_WRAP wraps it
+            mapx = _wrapped(self._u_np[p], sh, We)
             cv2.remap(bank[s], mapx, self._v_np[p], interp, dst=out_np[r], borderMode=cv2.BORDER_WRAP)
 
     def _render_torch(self, out, rows, slots, pitch, yaw, He: int) -> None:
