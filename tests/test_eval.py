@@ -208,9 +208,16 @@ def test_unknown_agent_name_in_config_lists_registered_agents(folder_ds, tmp_pat
 
 
 def test_ctrl_c_writes_nothing(folder_ds, tmp_path):
+    from findview.dataset import episode_file, read_episode_file
+
+    # a long episode file (the test episodes repeated), so the run is still going when SIGINT arrives
+    doc = read_episode_file(episode_file(folder_ds["out"], "test", 90))
+    many = [dict(e, episode_id=f"{e['episode_id']}-{k}") for k in range(2000) for e in doc["episodes"]]
+    big = tmp_path / "many_episodes.json"
+    big.write_text(json.dumps(dict(doc, episodes=many)))
     out = tmp_path / "interrupted"
     cmd = [PY, str(REPO / "tools" / "eval.py"), "agent=random", *ds_args(folder_ds), *SMALL, "num_envs=2",
-           f"hydra.run.dir={out}"]
+           f"episodes={big}", f"hydra.run.dir={out}"]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.time() + 60

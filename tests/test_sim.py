@@ -158,16 +158,15 @@ def test_modes_and_dtypes(pano):
         else:
             assert d.max() <= 1.0 + 1e-3
     near = equi2pers(equi, 10.0, 20.0, 90, 64, 64, mode="nearest", backend="torch")
-    colours = set(map(tuple, pano.reshape(-1, 3)[::7].tolist()))
+    colours = set(map(tuple, pano.reshape(-1, 3).tolist()))
     sample = near[0].permute(1, 2, 0).reshape(-1, 3)[::97].tolist()
-    assert all(tuple(c) in set(map(tuple, pano.reshape(-1, 3).tolist())) for c in sample)  # nearest copies pixels
+    assert all(tuple(c) in colours for c in sample)  # nearest copies pixels
     with pytest.raises(ValueError, match="mode"):
         equi2pers(equi, 0.0, 0.0, 90, 8, 8, mode="cubic")
     with pytest.raises(ValueError, match="fov"):
         equi2pers(equi, 0.0, 0.0, 180, 8, 8)
     with pytest.raises(ValueError, match="2:1"):
         equi2pers(equi[:, :, :, :100], 0.0, 0.0, 90, 8, 8)
-    del colours
 
 
 @pytest.mark.parametrize("mode", ["bilinear", "nearest", "bicubic"])
