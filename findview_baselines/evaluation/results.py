@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from findview.episode import DIFFICULTIES
-from findview.metrics import format_table, summarize
+from findview.metrics import RECORD_KEYS, format_table, summarize
 from findview.utils import atomic_write, write_json, write_text
 
 __all__ = [
@@ -37,22 +37,7 @@ __all__ = [
 ]
 
 #: the keys of one ``episodes.jsonl`` line, in order (the environment's episode record)
-EPISODE_FIELDS = (
-    "episode_id",
-    "image",
-    "label",
-    "difficulty",
-    "init_pitch",
-    "init_yaw",
-    "target_pitch",
-    "target_yaw",
-    "final_pitch",
-    "final_yaw",
-    "steps",
-    "called_stop",
-    "eps",
-    "shortest_path",
-)
+EPISODE_FIELDS = RECORD_KEYS
 
 
 # --------------------------------------------------------------------------------------------------
