@@ -1,19 +1,29 @@
 """Evidence that the PPO baseline learns: a short CPU training run beats the trivial agents.
 
-The world is made easy enough for a budget of a few minutes on 2 CPU cores (see the report in
-``LEARNING_SETUP`` below): 10 small "colour-wheel" panoramas whose hue turns with longitude and whose
-brightness falls with latitude (plus random discs), 48x48 views, easy episodes only (scheduler with one
-level), episodes capped at 200 steps. The agent still has to learn visual servoing from pixels (compare
-the view with the target and move the right way, then stop) with the real training loop (``train``:
-sampled episodes, FindViewEnv, GRU policy, GAE, PPO). After training, greedy evaluation on 48 fixed
-easy episodes must stop in most episodes and end far closer to the target than an agent that stops at
-once (whose eps is the mean initial L1 distance) and than a uniformly random agent.
+The real training loop (``train``: sampled episodes, ``FindViewEnv``, early-fusion CNN + GRU policy,
+GAE, PPO, checkpoints) runs 300 updates (76,800 env steps; about 2 minutes on 2 CPU cores, more when
+they are busy).
+Afterwards greedy evaluation on 48 fixed easy episodes (a seed the training sampler never used) must
+stop in most episodes and end far closer to the target than an agent that stops at once (whose eps is
+the mean initial L1 distance) and than a uniformly random agent.
 
-Settings that differ from the paper's (found by tuning on this budget; the paper's own settings need
-millions of steps): ``bell`` reward (the paper's ``alpha / (eps + beta)`` pays ~1.7 for stopping at once,
-which PPO collapses onto within ~20 updates at this scale), ``dist_coef`` 1.0, ``gamma`` 0.9 /
-``gae_lambda`` 0.8 (shorter credit assignment), a larger entropy bonus (otherwise the agent commits to
-one axis, pitch or yaw, and starves the other's actions), lr 1e-3, 2 epochs x 2 mini-batches.
+The world is made easy enough for that budget; every simplification is a config value:
+
+- 10 small "colour-wheel" panoramas: the hue turns once around the longitude (random phase), the
+  brightness falls with the latitude, plus random discs. On ``synthetic`` / SUN360 images a supervised
+  probe of the same encoder (48x48 or 64x64 views) is still at chance telling left from right after
+  51k labelled samples (pitch: 95%), so RL cannot learn yaw there within minutes.
+- ``task.pitch_bound: 0``: a yaw-only task (up / down are no-ops that cost a step). With pitch free, PPO
+  at this budget learns one axis (whichever it picks up first) and starves the other's actions, so it
+  gets close but never stops.
+- easy episodes only (``scheduler.num_levels: 1``), 48x48 views, 16 envs x 16 steps, GRU 64.
+- reward ``bell`` (peak ``alpha / beta`` = 10 at eps 0, ``dist_coef`` 1.0): with the paper's
+  ``alpha / (eps + beta)`` stopping at once pays ~1.7 and PPO collapses onto it within ~20 updates here.
+- ``gamma`` 0.9 / ``gae_lambda`` 0.8 (short credit assignment), lr 1e-3, 2 epochs x 2 mini-batches.
+
+Measured: greedy eps 1.33, omega_stop 1.0, SPL 0.17 vs eps 39.3 (stop-at-once) and 38.8 (random) on
+these 48 episodes; with training seed 1 instead of 0, eps 2.5 on another episode set. At 200 updates
+the agent already ends within ~2 degrees but does not yet call stop.
 """
 
 from __future__ import annotations
@@ -38,13 +48,14 @@ from findview_baselines.rl.trainer import evaluate, load_policy, train
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 48
 MAX_STEPS = 200
+PITCH_BOUND = 0  # yaw-only (see the module docstring)
 EVAL_EPISODES = 48
 
 LEARNING_SETUP = {
     "sim.height": SIZE, "sim.width": SIZE, "sim.device": "cpu", "sim.prefetch_workers": 0,
-    "task.max_steps": MAX_STEPS,
+    "task.max_steps": MAX_STEPS, "task.pitch_bound": PITCH_BOUND,
     "task.reward.name": "bell", "task.reward.alpha": 20.0, "task.reward.beta": 2.0, "task.reward.dist_coef": 1.0,
-    "agent.hidden_size": 64, "agent.rollout_steps": 16, "agent.lr": 1e-3, "agent.entropy_coef": 0.05,
+    "agent.hidden_size": 64, "agent.rollout_steps": 16, "agent.lr": 1e-3, "agent.entropy_coef": 0.01,
     "agent.gamma": 0.9, "agent.gae_lambda": 0.8, "agent.ppo_epochs": 2, "agent.num_mini_batches": 2,
     "trainer.num_envs": 16, "trainer.num_updates": 300, "trainer.seed": 0, "trainer.torch_threads": 1,
     "trainer.val_interval": 0, "trainer.val_at_end": False, "trainer.log_interval": 50,
@@ -107,15 +118,17 @@ def test_ppo_learns_to_find_the_view(tmp_path: Path) -> None:
 
     # fixed evaluation episodes: easy, all ten panoramas, a seed the training sampler never used
     images = [ImageEntry(str(p), "colour_wheel") for p in sorted(root.glob("*.png"))]
-    sampler = EpisodeSampler(images, 90, seed=12345, max_steps=MAX_STEPS)
+    sampler = EpisodeSampler(images, 90, seed=12345, max_steps=MAX_STEPS, pitch_bound=PITCH_BOUND)
     episodes = [sampler.sample("easy") for _ in range(EVAL_EPISODES)]
     stop_at_once_eps = float(np.mean([l1_distance(e.init_pitch, e.init_yaw, e.target_pitch, e.target_yaw) for e in episodes]))
 
     def make_env() -> FindViewEnv:
         bank = PanoramaBank("cpu", prefetch_workers=0, max_panoramas=len(images), min_slots=16)
-        sim = Simulator(bank, fov=90, height=SIZE, width=SIZE)
+        sim = Simulator(bank, fov=90, height=SIZE, width=SIZE, pitch_bound=PITCH_BOUND)
         reward = RewardConfig(**OmegaConf.to_container(cfg.task.reward))
-        return FindViewEnv(sim, StaticEpisodeSource(episodes), 16, max_steps=MAX_STEPS, reward=reward)
+        return FindViewEnv(
+            sim, StaticEpisodeSource(episodes), 16, max_steps=MAX_STEPS, pitch_bound=PITCH_BOUND, reward=reward
+        )
 
     policy = build_policy(cfg.agent, SIZE, SIZE)
     load_policy(result.latest, policy)

@@ -83,6 +83,7 @@ def make_config(root: Path, out_dir: Path, **overrides: Any) -> DictConfig:
         "agent.hidden_size": 32, "agent.rollout_steps": 8, "agent.ppo_epochs": 2,
         "trainer.num_updates": 6, "trainer.num_envs": 2, "trainer.val_interval": 3, "trainer.val_episodes": 3,
         "trainer.log_interval": 1, "trainer.checkpoint_interval": 2, "trainer.progress": False,
+        "trainer.torch_threads": 1,  # fastest on a busy 2-core machine (2 threads oversubscribe)
     }
     for key, value in {**tiny, **overrides}.items():
         OmegaConf.update(cfg, key, value, force_add=True)
@@ -227,7 +228,8 @@ def test_cli_resumes_the_same_run_folder(panorama_folder: Path, dataset_out: Pat
         f"dataset.root={panorama_folder}", f"dataset.out_dir={dataset_out}", "dataset.name=testfolder",
         f"sim.height={SIZE}", f"sim.width={SIZE}", "sim.device=cpu", "task.max_steps=300",
         "agent.hidden_size=32", "agent.rollout_steps=8", "trainer.num_envs=2", "trainer.num_updates=2",
-        "trainer.val_interval=0", "trainer.val_episodes=3", "trainer.progress=false", f"hydra.run.dir={run_dir}",
+        "trainer.val_interval=0", "trainer.val_episodes=3", "trainer.progress=false", "trainer.torch_threads=1",
+        f"hydra.run.dir={run_dir}",
     ]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     done = subprocess.run(args + ["trainer.stop_after=1"], capture_output=True, text=True, env=env, timeout=300)

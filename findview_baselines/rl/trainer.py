@@ -573,7 +573,7 @@ def train(cfg: Any, run_dir: str | Path, progress: bool | None = None) -> TrainR
                 num_updates=num_updates, num_envs=num_envs, seed=seed, val_interval=val_interval,
                 val_at_end=val_at_end, log_interval=log_interval, ckpt_interval=ckpt_interval,
                 stop_after=stop_after, show_progress=show_progress, sched_cfg=sched_cfg, sim_cfg=sim_cfg,
-            task_cfg=task_cfg, agent_cfg=agent_cfg, t=t,
+                task_cfg=task_cfg, agent_cfg=agent_cfg, t=t,
             )
     finally:
         torch.set_num_threads(previous_threads)
