@@ -75,8 +75,3 @@ def _looks_truncated(data: np.ndarray, path: Path) -> bool:
         return b"IEND" not in tail
     return False
 
-
-def read_image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """``(height, width)`` of an image file, decoding it fully (validates readability)."""
-    img = load_panorama(path)
-    return img.shape[0], img.shape[1]

@@ -68,10 +68,14 @@ def pitch_grid(
 
     ``u`` is not wrapped (add ``yaw / 360 * We`` and wrap modulo ``We``); ``v`` is not clamped.
     """
-    equi_width = 2 * equi_height
     rays = camera_rays(height, width, fov, device=device)
     lon, lat = _lonlat(rays, pitch.to(device=device), torch.zeros_like(pitch, device=device))
-    u = (lon / (2 * math.pi) + 0.5) * equi_width - 0.5
+    return _lonlat_to_uv(lon, lat, equi_height)
+
+
+def _lonlat_to_uv(lon: torch.Tensor, lat: torch.Tensor, equi_height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Longitude / latitude (radians) -> continuous panorama pixel coordinates (centres at integers)."""
+    u = (lon / (2 * math.pi) + 0.5) * (2 * equi_height) - 0.5
     v = (0.5 - lat / math.pi) * equi_height - 0.5
     return u, v
 
@@ -191,9 +195,8 @@ def sample_points(
             rays = _cached_rays(height, width, fov, device, dtype)
             pt = torch.tensor([float(p)], dtype=dtype, device=device)
             lon, lat = _lonlat(rays, pt, torch.zeros_like(pt))
-            u = torch.remainder((lon[0] / (2 * math.pi) + 0.5) * We - 0.5, We)
-            v = ((0.5 - lat[0] / math.pi) * equi_height - 0.5).clamp(0, equi_height - 1)
-            hit = (u.to(dtype), v.to(dtype))
+            u, v = _lonlat_to_uv(lon[0], lat[0], equi_height)
+            hit = (torch.remainder(u, We).to(dtype), v.clamp(0, equi_height - 1).to(dtype))
             if cacheable:
                 _GRID_CACHE[key] = hit
                 if len(_GRID_CACHE) > _GRID_CACHE_SIZE:
