@@ -17,15 +17,11 @@ The PNG is written atomically.
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+from findview_baselines.cli import ToolContext, run_tool
 
 log = logging.getLogger("findview.render")
 
@@ -98,23 +94,9 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     return out
 
 
-@hydra.main(version_base="1.3", config_path="../configs", config_name="render_episode")
-def main(cfg: DictConfig) -> None:
-    from hydra.core.hydra_config import HydraConfig
-
-    from findview_baselines.evaluation.evaluate import EvalError
-
-    hc = HydraConfig.get()
-    try:
-        out = render(cfg, Path(hc.runtime.output_dir), dict(hc.runtime.choices), list(hc.overrides.task))
-    except EvalError as err:
-        print(f"render_episode: error: {err}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print("render_episode: interrupted; nothing was written", file=sys.stderr)
-        sys.exit(130)
-    print(out)
+def main(cfg: DictConfig, ctx: ToolContext) -> None:
+    print(render(cfg, ctx.run_dir, ctx.choices, ctx.overrides))
 
 
 if __name__ == "__main__":
-    main()
+    run_tool("render_episode", main)

@@ -1,67 +1,37 @@
-"""Train the FindView PPO baseline.
+"""Train the learned FindView agent (PPO, or imitation of the oracle with ``trainer=dagger``).
 
-    python tools/train.py agent=ppo dataset=<name> [sim=fov60] [sim.height=128 sim.width=128]
-        [trainer.num_updates=30000] [trainer.num_envs=16] [trainer.val_interval=1000] [init_from=<ckpt>]
+    python tools/train.py agent=ppo dataset=<name> [sim=fov60] [trainer.num_updates=30000] [init_from=<ckpt>]
+    python tools/train.py +experiment=quickstart
 
-The run folder (``hydra.run.dir``, default
-``outputs/train/<dataset>/<agent>_<variant>_fov<F>_<H>x<W>``) holds ``checkpoints/latest.pth`` (resume
-state), ``checkpoints/best.pth`` (lowest mean val eps), TensorBoard scalars in ``tb/`` and the config
-(``.hydra/`` and ``resolved_config.yaml``). Re-running the same command resumes where it stopped
-(``trainer.resume=false`` starts over). Ctrl-C once stops after the current update and writes
-``latest.pth``. See ``configs/train.yaml`` for every option.
+The run folder (``hydra.run.dir``, default ``outputs/train/<dataset>/<agent>_<variant>_fov<F>_<H>x<W>``)
+holds ``checkpoints/latest.pth`` (resume state), ``checkpoints/best.pth`` (lowest mean val eps),
+TensorBoard scalars in ``tb/`` and the config. Re-running the same command resumes where it stopped
+(``trainer.resume=false`` starts over). SIGTERM or Ctrl-C stop at the next safe point, write
+``latest.pth`` and exit with 143 / 130. Every key is documented in ``findview_baselines/config.py``.
+
+Exit status: 0 done (or stopped by ``trainer.stop_after``), 1 training diverged, 2 a problem with the
+input (one line on stderr), 128 + signal when stopped by a signal.
 """
 
 from __future__ import annotations
 
 import logging
 import sys
-from pathlib import Path
 
-import hydra
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:  # run from a checkout without `pip install -e .`
-    sys.path.insert(0, str(REPO))
-
-from findview_baselines.rl.trainer import TrainingDiverged, train  # noqa: E402
+from findview_baselines.cli import ToolContext, run_tool
 
 log = logging.getLogger("train")
 
 
-def _precheck_run_dir(argv: list[str]) -> None:
-    """Fail with a clear message before Hydra itself tries to create an unwritable run folder.
-
-    Composes the config like Hydra will (single runs only; multirun and Hydra's own flags are left to
-    Hydra) and checks write access to the resolved ``hydra.run.dir``.
-    """
-    if any(arg.startswith("-") for arg in argv):
-        return
-    from hydra import compose, initialize_config_dir
-
-    from findview_baselines.rl.checkpoint import check_writable
+def main(cfg: DictConfig, ctx: ToolContext) -> None:
+    from findview_baselines.rl.run import TrainingDiverged, train
 
     try:
-        with initialize_config_dir(str(REPO / "configs"), version_base="1.3"):
-            cfg = compose("train", overrides=argv, return_hydra_config=True)
-            run_dir = str(cfg.hydra.run.dir)
-    except Exception:  # a bad override etc.: let Hydra report it in its own words
-        return
-    try:
-        check_writable(run_dir, "run folder (hydra.run.dir)")
-    except PermissionError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-
-
-@hydra.main(config_path="../configs", config_name="train", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    try:
-        result = train(cfg, run_dir)
-    except (TrainingDiverged, PermissionError, ValueError, FileNotFoundError) as err:
-        log.error("%s", err)
+        result = train(cfg, ctx.run_dir)
+    except TrainingDiverged as err:
+        print(f"train: {err}", file=sys.stderr, flush=True)
         sys.exit(1)
     status = "complete" if result.completed else "stopped early (re-run to resume)"
     best = f", best val eps {result.best_val_eps:.3f} ({result.best})" if result.best_val_eps is not None else ""
@@ -72,5 +42,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    _precheck_run_dir(sys.argv[1:])
-    main()
+    run_tool("train", main, check_run_dir=True)

@@ -1,4 +1,4 @@
-"""The batched FindView environment (SPEC section 2).
+"""The batched FindView environment (docs/TASK.md, section Episodes).
 
 ``N`` episodes step together from one ``(N,)`` tensor of actions. All per-episode state (rotations,
 targets, step counters) is a tensor on the simulator's device; panoramas live in the simulator's bank.
@@ -35,11 +35,13 @@ class FindViewEnv:
         pitch_bound: pitch is clamped to ``[-pitch_bound, pitch_bound]`` degrees (a move into the
             bound costs a step and changes nothing).
         step_deg: degrees per move.
-        reward: reward configuration (SPEC section 7).
+        reward: reward configuration (docs/TASK.md, section Rewards).
         auto_reset: start the next episode in a slot as soon as one ends (the returned observation is
             then the new episode's first). Without it a finished slot must be :meth:`reset_envs`'d;
             stepping it is an error.
-        target_transform: applied once to each new target view (e.g. a corruption), never to views.
+        target_transform: applied once to each new target view (e.g. a corruption), never to views. If
+            it has ``info(episode) -> dict``, that dict (``corruption``, ``severity``) goes into the
+            episode's record; otherwise the record says ``corruption="none"``, ``severity=0``.
         prefetch: how many upcoming episodes' panoramas to decode in the background.
     """
 
@@ -241,7 +243,13 @@ class FindViewEnv:
             "called_stop": called_stop,
             "eps": eps,
             "shortest_path": int(l1_distance(ep.init_pitch, ep.init_yaw, ep.target_pitch, ep.target_yaw)) + 1,
+            **self._target_info(ep),
         }
+
+    def _target_info(self, ep: Episode) -> dict:
+        """``{"corruption", "severity"}`` of the episode's target (``"none"``, 0 when clean)."""
+        info = getattr(self.target_transform, "info", None)
+        return dict(info(ep)) if info is not None else {"corruption": "none", "severity": 0}
 
     def _start(self, env_ids: list[int]) -> None:
         """Begin the source's next episodes in ``env_ids`` (slots whose source is exhausted go inactive)."""

@@ -24,6 +24,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from findview.episode import DIFFICULTIES, Episode
+from findview_baselines.cli import UserError
 
 log = logging.getLogger("findview.eval")
 
@@ -39,7 +40,7 @@ __all__ = [
 ]
 
 
-class EvalError(Exception):
+class EvalError(UserError):
     """A user-facing configuration / input problem (the tools print the message, no traceback)."""
 
 
@@ -157,41 +158,76 @@ def filter_episodes(episodes: Sequence[Episode], difficulty: Any = None, max_epi
 
 
 def build_env(cfg: DictConfig, episodes: Sequence[Episode], num_envs: int):
-    """Simulator + auto-resetting :class:`~findview.task.FindViewEnv` over the static episodes."""
-    from findview.sim import PanoramaBank, Simulator, resolve_device
-    from findview.task import FindViewEnv, StaticEpisodeSource
+    """Simulator + auto-resetting environment over the static episodes (:func:`findview.build.build_static_env`),
+    with the ``corruption`` section's target corruption."""
+    from findview.build import build_static_env
 
     try:
-        device = resolve_device(str(_get(cfg, "sim.device", "auto")))
+        return build_static_env(cfg.sim, cfg.task, episodes, num_envs, corruption_cfg=_get(cfg, "corruption"))
     except ValueError as err:
         raise EvalError(str(err)) from err
-    pitch_bound = int(_get(cfg, "task.pitch_bound", 60))
-    bank = PanoramaBank(
-        device,
-        budget_mb=float(_get(cfg, "sim.bank_mb", 2048)),
-        equi_height=_get(cfg, "sim.equi_height"),
-        prefetch_workers=int(_get(cfg, "sim.prefetch_workers", 2)),
-        max_panoramas=len({e.image for e in episodes}),
-        min_slots=num_envs,
-    )
-    sim = Simulator(
-        bank,
-        fov=float(_get(cfg, "sim.fov", 90)),
-        height=int(_get(cfg, "sim.height", 256)),
-        width=int(_get(cfg, "sim.width", 256)),
-        pitch_bound=pitch_bound,
-        mode=str(_get(cfg, "sim.mode", "bilinear")),
-        backend=str(_get(cfg, "sim.backend", "auto")),
-    )
-    return FindViewEnv(
-        sim,
-        StaticEpisodeSource(episodes),
-        num_envs,
-        max_steps=int(_get(cfg, "task.max_steps", 5000)),
-        pitch_bound=pitch_bound,
-        step_deg=int(_get(cfg, "task.step_deg", 1)),
-        auto_reset=True,
-    )
+
+
+def _corruption_label(cfg: DictConfig) -> str:
+    """The ``corruption.name`` setting as text (``none`` when clean)."""
+    name = _get(cfg, "corruption.name", "none")
+    if OmegaConf.is_list(name) or isinstance(name, (list, tuple)):
+        return ",".join(str(n) for n in name)
+    return str(name)
+
+
+def _rewrite_hydra_config(out: Path, cfg: DictConfig) -> None:
+    """Replace ``.hydra/config.yaml`` by the effective config (after a checkpoint supplied the agent and the
+    view), so that the run folder never shows the default agent's config beside a checkpoint's results."""
+    from findview.utils import write_text
+
+    path = out / ".hydra" / "config.yaml"
+    if path.is_file():
+        write_text(path, OmegaConf.to_yaml(cfg))
+
+
+def _overridden(overrides: Sequence[str], *keys: str) -> bool:
+    return any(o.split("=", 1)[0].lstrip("+~") in keys for o in overrides)
+
+
+def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
+    """``checkpoint=...``: take the FoV, the view size and the agent's model from the checkpoint.
+
+    ``sim.fov`` / ``sim.height`` / ``sim.width`` come from the checkpoint unless given on the command
+    line (or a ``sim=`` preset was chosen); ``cfg.agent`` becomes the checkpoint's learned-agent config
+    (keeping ``agent.sample`` when ``agent=ppo`` was given). Edits ``cfg`` in place; returns the
+    checkpoint's run config (``{}`` when it has none).
+
+    Raises:
+        EvalError: the file is missing or not a findview checkpoint (naming it).
+    """
+    from omegaconf import open_dict
+
+    from findview_baselines.rl.checkpoint import load_checkpoint
+
+    path = os.path.expanduser(str(_get(cfg, "checkpoint")))
+    try:
+        state = load_checkpoint(path)
+    except (FileNotFoundError, ValueError) as err:
+        raise EvalError(f"{err} (checkpoint=...)") from None
+    run_conf = dict(state.get("config") or {})
+    sig = dict(state["signature"])
+    trained_sim = dict(run_conf.get("sim") or {})
+    with open_dict(cfg):
+        if not _overridden(overrides, "sim", "sim.height"):
+            cfg.sim.height = int(sig.get("height", cfg.sim.height))
+        if not _overridden(overrides, "sim", "sim.width"):
+            cfg.sim.width = int(sig.get("width", cfg.sim.width))
+        if "fov" in trained_sim and not _overridden(overrides, "sim", "sim.fov"):
+            cfg.sim.fov = float(trained_sim["fov"])
+        sample = bool(_get(cfg, "agent.sample", False)) if _get(cfg, "agent.name") == "ppo" else False
+        cfg.agent = OmegaConf.create({
+            "name": "ppo",
+            "variant": str(sig.get("variant", "early_fusion")),
+            "hidden_size": int(sig.get("hidden_size", 512)),
+            "sample": sample,
+        })
+    return run_conf
 
 
 def build_agent(cfg: DictConfig, num_envs: int, device: Any, agent_explicit: bool = True):
@@ -209,10 +245,7 @@ def build_agent(cfg: DictConfig, num_envs: int, device: Any, agent_explicit: boo
     if checkpoint:
         if name != "ppo" and agent_explicit:
             raise EvalError(f"checkpoint= evaluates a PPO policy; it cannot be combined with agent={name} (use agent=ppo or drop agent=)")
-        agent_cfg = cfg.agent if name == "ppo" else {}
-        sample = _get(agent_cfg, "sample")
-        if sample is None:
-            sample = not bool(_get(agent_cfg, "deterministic_eval", True))
+        sample = bool(_get(cfg, "agent.sample", False)) if name == "ppo" else False
         try:
             agent = PPOAgent.from_checkpoint(
                 os.path.expanduser(str(checkpoint)), num_envs, device, seed, bool(sample),
@@ -283,6 +316,14 @@ def evaluate(
 
     choices = dict(choices or {})
     out = Path(out_dir)
+    if _get(cfg, "checkpoint"):
+        chosen = str(_get(cfg, "agent.name", "?"))
+        if chosen != "ppo" and _overridden(overrides, "agent"):
+            raise EvalError(f"checkpoint= evaluates a learned agent; it cannot be combined with agent={chosen} "
+                            f"(use agent=ppo or drop agent=)")
+        apply_checkpoint_config(cfg, overrides)
+        choices["agent"] = "ppo"
+        _rewrite_hydra_config(out, cfg)
     episodes, path, dataset_name = resolve_episodes(cfg, choices.get("dataset"), overrides)
     if not episodes:
         raise EvalError(f"{path} holds no episodes (does the split have images? see its splits.json)")
@@ -326,6 +367,8 @@ def evaluate(
         "dataset": dataset_name,
         "split": str(_get(cfg, "split", "?")) if not _get(cfg, "episodes") else Path(path).stem,
         "agent_config": choices.get("agent", agent_name),
+        "corruption": _corruption_label(cfg),
+        "severity": _get(cfg, "corruption.severity", 0) if _corruption_label(cfg) != "none" else 0,
         "difficulty": _get(cfg, "difficulty"),
         "episodes_file": str(path),
         "episodes": len(records),

@@ -1,0 +1,230 @@
+"""Typed config schemas of the core: ``sim``, ``task`` (with ``task.reward``), ``dataset``, ``corruption``.
+
+Each dataclass is the schema of one Hydra config group. :func:`register_core_configs` stores them in
+Hydra's ConfigStore as ``<group>/base_<group>``; every YAML file of the group starts with
+``defaults: [base_<group>, _self_]``, so a wrong type or an unknown key fails when the config is
+composed (before any work starts). Value ranges that a type cannot express are checked by
+``__post_init__``, which runs when the tools turn the composed config into objects
+(:func:`findview.config_errors.validate`); the messages name the full key.
+
+The field docstrings are the documentation of every key (units: degrees, pixels, steps, MiB). The task
+itself (conventions, difficulties, metrics, rewards) is described in docs/TASK.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+__all__ = [
+    "ConfigError",
+    "SimConfig",
+    "RewardSchema",
+    "TaskConfig",
+    "DatasetConfig",
+    "CorruptionConfig",
+    "register_core_configs",
+    "check",
+]
+
+
+class ConfigError(ValueError):
+    """A config value a user set is not acceptable; the message names the key, the value and what was
+    expected (the tools print it as one line and exit with status 2)."""
+
+
+def check(ok: bool, key: str, value: Any, expected: str) -> None:
+    """Raise :class:`ConfigError` ``"<key>=<value>: expected <expected>"`` unless ``ok``."""
+    if not ok:
+        raise ConfigError(f"{key}={value!r}: expected {expected}")
+
+
+SIM_MODES = ("bilinear", "nearest", "bicubic")
+SIM_BACKENDS = ("auto", "opencv", "torch")
+REWARD_NAMES = ("paper", "bell", "basic")
+DATASET_KINDS = ("synthetic", "sun360", "indoor360", "folder")
+HARD_RULES = ("or", "and")
+
+
+@dataclass
+class SimConfig:
+    """The renderer (``sim`` group; ``sim=fov90`` is the paper's main setting, ``sim=fov60`` its appendix)."""
+
+    fov: float = 90.0
+    """Horizontal field of view of the perspective views, degrees, in (0, 180)."""
+    height: int = 256
+    """View height, pixels."""
+    width: int = 256
+    """View width, pixels."""
+    mode: str = "bilinear"
+    """Panorama sampling: bilinear | nearest | bicubic."""
+    backend: str = "auto"
+    """Renderer: auto (OpenCV remap for uint8 panoramas on the CPU, torch elsewhere) | opencv | torch."""
+    device: str = "auto"
+    """Where panoramas, views and the environment state live: auto (cuda if available) | cpu | cuda | cuda:N."""
+    bank_mb: float = 2048.0
+    """Memory bound of the decoded-panorama bank (LRU), MiB."""
+    equi_height: Optional[int] = None
+    """Panorama height He in pixels that every panorama is resized to (width 2 He); null keeps the first
+    panorama's size (all panoramas of a data set normally share it)."""
+    prefetch_workers: int = 2
+    """Background panorama-decoding threads (0 decodes inline)."""
+
+    def __post_init__(self) -> None:
+        check(0 < self.fov < 180, "sim.fov", self.fov, "a field of view in (0, 180) degrees")
+        check(self.height >= 8, "sim.height", self.height, "a view height of at least 8 pixels")
+        check(self.width >= 8, "sim.width", self.width, "a view width of at least 8 pixels")
+        check(self.mode in SIM_MODES, "sim.mode", self.mode, " | ".join(SIM_MODES))
+        check(self.backend in SIM_BACKENDS, "sim.backend", self.backend, " | ".join(SIM_BACKENDS))
+        check(self.bank_mb > 0, "sim.bank_mb", self.bank_mb, "a positive size in MiB")
+        check(self.equi_height is None or self.equi_height >= 8, "sim.equi_height", self.equi_height,
+              "null or a panorama height of at least 8 pixels")
+        check(self.prefetch_workers >= 0, "sim.prefetch_workers", self.prefetch_workers, "0 or more threads")
+
+
+@dataclass
+class RewardSchema:
+    """PPO rewards (``task.reward``); the three variants are described in docs/TASK.md, section Rewards."""
+
+    name: str = "paper"
+    """paper | bell | basic."""
+    alpha: float = 100.0
+    """Success scale: alpha / (eps + beta) on stop, -alpha on a forced stop at T."""
+    beta: float = 10.0
+    """Success offset, degrees (> 0)."""
+    dist_coef: float = 0.1
+    """Warmer-colder shaping per step: dist_coef * (eps_{t-1} - eps_t), eps in degrees."""
+    slack: float = -0.01
+    """Reward added at every step."""
+    bell_sigma: float = 5.0
+    """``bell`` only: width of the stop reward's bell curve, degrees (> 0)."""
+
+    def __post_init__(self) -> None:
+        check(self.name in REWARD_NAMES, "task.reward.name", self.name, " | ".join(REWARD_NAMES))
+        check(self.beta > 0, "task.reward.beta", self.beta, "a positive number of degrees")
+        check(self.bell_sigma > 0, "task.reward.bell_sigma", self.bell_sigma, "a positive number of degrees")
+
+
+@dataclass
+class TaskConfig:
+    """Episode rules (``task`` group; docs/TASK.md, section Episodes)."""
+
+    max_steps: int = 5000
+    """T: an episode is force-stopped after this many steps (stop counts as a step)."""
+    pitch_bound: int = 60
+    """Pitch is clamped to [-pitch_bound, pitch_bound], degrees (<= 90)."""
+    step_deg: int = 1
+    """Degrees per move."""
+    reward: RewardSchema = field(default_factory=RewardSchema)
+    """Rewards for reinforcement learning."""
+
+    def __post_init__(self) -> None:
+        check(self.max_steps >= 1, "task.max_steps", self.max_steps, "a positive number of steps")
+        check(0 < self.pitch_bound <= 90, "task.pitch_bound", self.pitch_bound, "an integer in (0, 90] degrees")
+        check(self.step_deg >= 1, "task.step_deg", self.step_deg, "a positive integer number of degrees")
+
+
+@dataclass
+class DatasetConfig:
+    """A data set of equirectangular panoramas, its splits and its static val/test episodes (``dataset``
+    group; docs/TASK.md, section Data sets and splits)."""
+
+    name: str = "synthetic"
+    """Data set name (used in output folder names)."""
+    kind: str = "synthetic"
+    """Layout: synthetic | sun360 | indoor360 | folder."""
+    root: Optional[str] = None
+    """Folder with the panoramas (synthetic: where they are generated)."""
+    subset: Optional[str] = None
+    """sun360 only: indoor | outdoor | others | all."""
+    out_dir: str = "data/${.name}"
+    """Where splits.json and episodes/ are written (relative paths: the launch folder)."""
+    split: list[float] = field(default_factory=lambda: [0.8, 0.1, 0.1])
+    """Train / val / test ratios within each label (sub-category)."""
+    split_seed: int = 0
+    """Seed of the split order."""
+    episodes_per_image: int = 1
+    """Static val/test episodes per image and difficulty."""
+    episode_seed: int = 0
+    """Seed of the static episodes."""
+    episode_fovs: list[float] = field(default_factory=lambda: [90.0, 60.0])
+    """Fields of view (degrees) with an episode file each; tools use the file of sim.fov."""
+    episode_pitch_bound: int = 60
+    """Static episodes: init and target pitches within [-b, b] degrees (must equal task.pitch_bound)."""
+    episode_max_steps: int = 5000
+    """Static episodes: shortest paths satisfy 10 < L1 < this many steps (independent of task.max_steps, so
+    the benchmark episodes never depend on which tool ran last)."""
+    hard_rule: str = "or"
+    """Hard difficulty: or = |dpitch| > f OR dyaw > f (the published numbers); and = the paper's text."""
+    splits_to_make: list[str] = field(default_factory=lambda: ["val", "test"])
+    """Splits with static episode files (train episodes are sampled on the fly)."""
+    validate: bool = True
+    """Decode every image when (re)building the splits."""
+    num_images: int = 40
+    """synthetic only: number of panoramas (image i gets label labels[i % len(labels)])."""
+    seed: int = 0
+    """synthetic only: generator seed."""
+    width: int = 1024
+    """synthetic only: panorama width, pixels (height = width / 2)."""
+    labels: list[str] = field(default_factory=lambda: ["room", "hall", "landscape", "village"])
+    """synthetic only: scene kinds."""
+
+    def __post_init__(self) -> None:
+        check(self.kind in DATASET_KINDS, "dataset.kind", self.kind, " | ".join(DATASET_KINDS))
+        check(self.hard_rule in HARD_RULES, "dataset.hard_rule", self.hard_rule, "or | and")
+        check(len(self.split) == 3 and all(r >= 0 for r in self.split) and sum(self.split) > 0,
+              "dataset.split", list(self.split), "three non-negative ratios [train, val, test]")
+        check(self.episodes_per_image >= 1, "dataset.episodes_per_image", self.episodes_per_image, "a positive integer")
+        check(all(0 < f < 180 for f in self.episode_fovs), "dataset.episode_fovs", list(self.episode_fovs),
+              "fields of view in (0, 180) degrees")
+        bad = [s for s in self.splits_to_make if s not in ("train", "val", "test")]
+        check(not bad, "dataset.splits_to_make", list(self.splits_to_make), "a list of train | val | test")
+        check(self.num_images >= 1, "dataset.num_images", self.num_images, "a positive integer")
+        check(self.width >= 16 and self.width % 2 == 0, "dataset.width", self.width, "an even width of at least 16 pixels")
+
+
+@dataclass
+class CorruptionConfig:
+    """Target-image corruptions (``corruption`` group; docs/TASK.md, section Corruptions).
+
+    Applied to the target image only, once per episode, from the episode's seed; the current view stays
+    clean.
+    """
+
+    name: Any = "none"
+    """One corruption name, a list of names, a category (blur | noise | digital | weather), all, or none."""
+    severity: Any = 3
+    """Severity 1-5, or [low, high] to draw one per episode."""
+    ramp_updates: int = 0
+    """Training only: raise the highest severity from `low` to `high` linearly over this many updates
+    (0: no ramp)."""
+
+    def __post_init__(self) -> None:
+        sev = self.severity
+        levels = list(sev) if isinstance(sev, (list, tuple)) else [sev]
+        ok = (
+            1 <= len(levels) <= 2
+            and all(isinstance(s, int) and not isinstance(s, bool) and 1 <= s <= 5 for s in levels)
+            and levels == sorted(levels)
+        )
+        check(ok, "corruption.severity", sev, "an integer 1-5 or a range [low, high] within 1-5")
+        check(self.ramp_updates >= 0, "corruption.ramp_updates", self.ramp_updates, "0 or more updates")
+        try:  # TEMP guard until findview.corruptions lands
+            from findview.corruptions import resolve_names  # deferred: keeps this module light
+        except ImportError:
+            return
+        try:
+            resolve_names(self.name)
+        except ValueError as err:
+            raise ConfigError(f"corruption.name={self.name!r}: {err}") from None
+
+
+def register_core_configs() -> None:
+    """Store the core schemas in Hydra's ConfigStore (``<group>/base_<group>``). Idempotent."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(group="sim", name="base_sim", node=SimConfig)
+    cs.store(group="task", name="base_task", node=TaskConfig)
+    cs.store(group="dataset", name="base_dataset", node=DatasetConfig)
+    cs.store(group="corruption", name="base_corruption", node=CorruptionConfig)

@@ -1,0 +1,63 @@
+"""Per-episode corruption of the target image (docs/TASK.md, section Corruptions).
+
+:class:`EpisodeCorruption` is the environment's ``target_transform`` for ``corruption.name != none``:
+once per episode, when the episode starts, the rendered target view is corrupted with a corruption and a
+severity drawn from the episode's own seed, so every agent (rule-based or learned), every ``num_envs``
+and every rerun sees the very same corrupted target for the same episode. The current view stays clean.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from findview.episode import Episode
+
+__all__ = ["EpisodeCorruption"]
+
+#: mixed into the episode seed so the corruption's random stream differs from the episode sampler's
+_STREAM = 0x5EC0
+
+
+class EpisodeCorruption:
+    """Corrupt each episode's target once, reproducibly from ``episode.seed``.
+
+    Args:
+        names: corruption names to draw from (uniformly, per episode).
+        low, high: severity range (inclusive, 1-5), drawn uniformly per episode.
+
+    Attributes:
+        max_severity: the current upper bound of the drawn severity (``<= high``); the trainer raises it
+            from ``low`` to ``high`` when ``corruption.ramp_updates > 0``.
+    """
+
+    def __init__(self, names: Sequence[str], low: int, high: int) -> None:
+        if not names:
+            raise ValueError("EpisodeCorruption needs at least one corruption name")
+        if not 1 <= int(low) <= int(high) <= 5:
+            raise ValueError(f"corruption.severity range [{low}, {high}]: expected 1 <= low <= high <= 5")
+        self.names = tuple(names)
+        self.low, self.high = int(low), int(high)
+        self.max_severity = self.high
+
+    def choice(self, episode: Episode) -> tuple[str, int]:
+        """The ``(name, severity)`` this episode's target gets (a function of its seed and ``max_severity``)."""
+        rng = np.random.default_rng([int(episode.seed) % 2**63, _STREAM])
+        name = self.names[int(rng.integers(len(self.names)))]
+        severity = int(rng.integers(self.low, max(self.low, self.max_severity) + 1))
+        return name, severity
+
+    def info(self, episode: Episode) -> dict[str, object]:
+        """``{"corruption": name, "severity": s}`` for the episode's record."""
+        name, severity = self.choice(episode)
+        return {"corruption": name, "severity": severity}
+
+    def __call__(self, target: torch.Tensor, episode: Episode) -> torch.Tensor:
+        """Corrupt one target view ``(3, H, W)`` uint8; returns ``(3, H, W)`` uint8 on the same device."""
+        from findview.corruptions import corrupt
+
+        name, severity = self.choice(episode)
+        generator = torch.Generator().manual_seed((int(episode.seed) * 1_000_003 + _STREAM) % 2**63)
+        return corrupt(target.unsqueeze(0), name, severity, generator=generator)[0]

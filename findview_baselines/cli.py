@@ -1,0 +1,324 @@
+"""What every tool in ``tools/`` shares: typed configs checked before any work, one-line user errors with
+exit status 2, signals turned into clean exits, and the CPU thread policy.
+
+A tool is::
+
+    from findview_baselines.cli import run_tool
+
+    def main(cfg: DictConfig, ctx: ToolContext) -> None: ...
+
+    if __name__ == "__main__":
+        run_tool("eval", main)
+
+:func:`run_tool`
+
+1. registers the schemas (:func:`findview_baselines.config.register_configs`) and the resolvers;
+2. composes the config of every job of the command line (each combination of a ``-m`` sweep) and turns
+   it into objects, so a wrong type, an unknown key (presets included) or an out-of-range value stops the
+   command before anything runs: one line ``<tool>: error: <key>=<value>: expected ...`` on stderr, exit 2;
+3. hands over to Hydra (run folder, logging, multirun), calling ``main`` per job;
+4. maps what ``main`` raises: :data:`USER_ERRORS` -> one line and exit 2 (a run folder left with only
+   Hydra's files is removed); ``KeyboardInterrupt`` -> exit 130; :class:`Interrupted` (a SIGTERM / SIGINT
+   turned into a clean stop by the trainer) -> exit 128 + signal number. Anything else is a bug and
+   keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NoReturn
+
+from omegaconf import DictConfig, OmegaConf
+
+from findview.config import ConfigError
+
+__all__ = [
+    "Interrupted",
+    "UserError",
+    "USER_ERRORS",
+    "ToolContext",
+    "compose_config",
+    "validate_config",
+    "config_error_line",
+    "run_tool",
+    "CONFIG_DIR",
+]
+
+log = logging.getLogger("findview")
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+class UserError(Exception):
+    """A problem the user caused and can fix (bad value, missing file, unwritable folder, ...): the tools
+    print the message as one line and exit with status 2. The message names the file or value and the
+    way out."""
+
+
+class Interrupted(Exception):
+    """A run stopped cleanly on a signal (its resume state written); ``signum`` decides the exit status."""
+
+    def __init__(self, signum: int, message: str) -> None:
+        super().__init__(message)
+        self.signum = int(signum)
+
+
+#: exceptions printed as one line with exit status 2 (``ValueError`` covers ``ConfigError``)
+USER_ERRORS: tuple[type[BaseException], ...] = (UserError, ConfigError, ValueError, FileNotFoundError, PermissionError)
+
+
+@dataclass
+class ToolContext:
+    """What a tool's ``main`` gets besides the config."""
+
+    run_dir: Path
+    """The job's output folder (Hydra's ``runtime.output_dir``)."""
+    choices: dict[str, str] = field(default_factory=dict)
+    """Config-group choices, e.g. ``{"agent": "sift", "dataset": "synthetic"}``."""
+    overrides: list[str] = field(default_factory=list)
+    """The job's command-line overrides."""
+
+    def overridden(self, key: str) -> bool:
+        """Whether ``key`` (or a group choice ``key=...``) was given on the command line."""
+        return any(o.split("=", 1)[0].lstrip("+~") == key for o in self.overrides)
+
+
+# ------------------------------------------------------------------------------------------------
+# Resolvers
+# ------------------------------------------------------------------------------------------------
+
+
+def run_name_from_checkpoint(path: str) -> str:
+    """A folder name for a checkpoint: ``<run folder>-<file stem>`` for ``<run>/checkpoints/<f>.pth``,
+    else the file stem (``pretrained/cpu_agent.pth`` -> ``cpu_agent``)."""
+    p = Path(str(path))
+    if p.parent.name == "checkpoints" and p.parent.parent.name:
+        return f"{p.parent.parent.name}-{p.stem}"
+    return p.stem
+
+
+def _eval_run_name(agent_choice: Any, checkpoint: Any) -> str:
+    return run_name_from_checkpoint(str(checkpoint)) if checkpoint not in (None, "", "None") else str(agent_choice)
+
+
+def register_resolvers() -> None:
+    """OmegaConf resolvers used by the tool configs (idempotent)."""
+    if not OmegaConf.has_resolver("eval_run_name"):
+        OmegaConf.register_new_resolver("eval_run_name", _eval_run_name)
+
+
+# ------------------------------------------------------------------------------------------------
+# Composition and validation
+# ------------------------------------------------------------------------------------------------
+
+
+def _describe_expected(msg: str) -> str:
+    """Turn OmegaConf's wording into "expected ..." (for the one-line error)."""
+    low = msg.lower()
+    for word, text in (
+        ("integer", "an integer"),
+        ("float", "a number"),
+        ("bool", "true or false"),
+        ("enum", "one of the allowed names"),
+        ("string", "a string"),
+    ):
+        if f"converted to {word}" in low or f"to {word}" in low:
+            return text
+    return ""
+
+
+def config_error_line(err: BaseException) -> str:
+    """One line naming the key, the value and what was expected, from a Hydra / OmegaConf error chain."""
+    from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
+
+    chain: list[BaseException] = []
+    e: BaseException | None = err
+    while e is not None and len(chain) < 8:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    for e in chain:
+        if isinstance(e, ConfigError):
+            return str(e)
+        missing = getattr(e, "missing_cfg_file", None)
+        if missing is not None and getattr(e, "options", None) is not None:  # hydra MissingConfigException
+            group, _, name = str(missing).rpartition("/")
+            valid = sorted(o for o in e.options if not o.startswith("base_"))
+            return f"unknown {group or 'config'} {name!r}; valid: {', '.join(valid)}"
+    for e in chain:
+        if isinstance(e, OmegaConfBaseException):
+            key = getattr(e, "full_key", None) or ""
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            if isinstance(e, ConfigKeyError) or "not in" in first:
+                parent = key.rsplit(".", 1)[0] if "." in key else "the config"
+                return f"unknown key {key!r}: not a key of {parent} (check the spelling; the schemas in findview/config.py and findview_baselines/config.py list every key)"
+            if isinstance(e, ValidationError):
+                value = None
+                if "'" in first:
+                    parts = first.split("'")
+                    value = parts[1] if len(parts) > 2 else None
+                expected = _describe_expected(first)
+                if key and value is not None and expected:
+                    return f"{key}={value!r}: expected {expected}"
+                return f"{key}: {first}" if key else first
+            return f"{key}: {first}" if key and key not in first else first
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
+
+
+def _job_overrides(argv: Sequence[str], multirun: bool) -> list[list[str]]:
+    """The overrides of every job the command line asks for (one list for a single run)."""
+    overrides = [a for a in argv if not a.startswith("-")]
+    if not multirun:
+        return [overrides]
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    batches = BasicSweeper.split_arguments(parsed, None)
+    return [job for batch in batches for job in batch] or [overrides]
+
+
+def compose_config(config_name: str, overrides: Sequence[str] = (), return_hydra_config: bool = False) -> DictConfig:
+    """Compose a tool's config like the tool does (for tests, notebooks and the pre-check)."""
+    from hydra import compose, initialize_config_dir
+
+    from findview_baselines.config import register_configs
+
+    register_configs()
+    register_resolvers()
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
+
+
+def validate_config(cfg: DictConfig) -> Any:
+    """Instantiate the schemas of ``cfg`` (without its ``hydra`` node), which runs every range check.
+
+    Returns the object tree. Raises :class:`ConfigError` (one-line message naming the key).
+    """
+    plain = OmegaConf.masked_copy(cfg, [k for k in cfg.keys() if k != "hydra"]) if "hydra" in cfg else cfg
+    try:
+        return OmegaConf.to_object(plain)
+    except ConfigError:
+        raise
+    except Exception as err:  # an interpolation or conversion problem: name the key
+        raise ConfigError(config_error_line(err)) from None
+
+
+def _fail(tool: str, message: str, status: int = 2) -> NoReturn:
+    print(f"{tool}: error: {' '.join(message.split())}", file=sys.stderr, flush=True)
+    sys.exit(status)
+
+
+def precheck(tool: str, config_name: str, argv: Sequence[str], check_run_dir: bool = False) -> None:
+    """Compose and validate every job of the command line; exit 2 with one line on the first problem."""
+    flags = [a for a in argv if a.startswith("-")]
+    if any(f not in ("-m", "--multirun") for f in flags):
+        return  # --help, --cfg job, --info ...: Hydra's own business
+    jobs = _job_overrides(argv, multirun=bool(flags))
+    for job in jobs:
+        try:
+            cfg = compose_config(config_name, job, return_hydra_config=True)
+        except Exception as err:
+            _fail(tool, config_error_line(err))
+        try:
+            validate_config(cfg)
+        except ConfigError as err:
+            _fail(tool, str(err))
+    if not flags and check_run_dir:
+        _precheck_run_dir(tool, cfg)
+
+
+def _precheck_run_dir(tool: str, cfg: DictConfig) -> None:
+    """A single run into a folder that cannot be written, or that a live training holds, fails before
+    Hydra creates anything (folders whose name Hydra only knows at run time are left to the run)."""
+    from findview_baselines.rl.checkpoint import check_writable
+    from findview_baselines.rl.safety import lock_holder
+
+    try:
+        run_dir = Path(str(cfg.hydra.run.dir))
+    except Exception:
+        return
+    holder = lock_holder(run_dir) if run_dir.is_dir() else None
+    if holder is not None:
+        _fail(tool, f"run folder {run_dir} is in use by a live training run (pid {holder}); wait for it to "
+                    f"finish, stop it, or train into another folder (hydra.run.dir=<folder>)")
+    existed = run_dir.exists()
+    try:
+        check_writable(run_dir, "run folder (hydra.run.dir)")
+    except PermissionError as err:
+        _fail(tool, str(err))
+    if not existed:
+        shutil.rmtree(run_dir, ignore_errors=True)  # Hydra makes it; a check must leave nothing behind
+
+
+def _remove_if_empty_run(run_dir: Path) -> None:
+    """Remove a run folder that holds nothing but Hydra's own files (a run that failed at once)."""
+    try:
+        entries = list(run_dir.iterdir())
+    except OSError:
+        return
+    if all(e.name == ".hydra" or (e.is_file() and e.suffix == ".log") for e in entries):
+        shutil.rmtree(run_dir, ignore_errors=True)
+        parent = run_dir.parent  # outputs/eval/<name>/ may be empty now
+        try:
+            if parent.is_dir() and not any(parent.iterdir()):
+                parent.rmdir()
+        except OSError:
+            pass
+
+
+def _configure_threads(threads: int | None) -> None:
+    try:  # TEMP guard until findview.runtime lands
+        from findview.runtime import configure_threads
+    except ImportError:
+        import torch
+
+        if threads:
+            torch.set_num_threads(int(threads))
+        return
+    configure_threads(threads)
+
+
+def run_tool(
+    config_name: str, main: Callable[[DictConfig, ToolContext], Any], tool: str | None = None, check_run_dir: bool = False
+) -> None:
+    """Run ``main`` as the Hydra app of ``configs/<config_name>.yaml`` (see module docstring)."""
+    import hydra
+    from hydra.core.hydra_config import HydraConfig
+
+    from findview_baselines.config import register_configs
+
+    tool = tool or config_name
+    register_configs()
+    register_resolvers()
+    precheck(tool, config_name, sys.argv[1:], check_run_dir)
+
+    @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
+    def _app(cfg: DictConfig) -> None:
+        hc = HydraConfig.get()
+        ctx = ToolContext(Path(hc.runtime.output_dir), dict(hc.runtime.choices), list(hc.overrides.task))
+        threads = OmegaConf.select(cfg, "torch_threads", default=None)
+        if threads is None:
+            threads = OmegaConf.select(cfg, "trainer.torch_threads", default=None)
+        _configure_threads(threads)
+        try:
+            main(cfg, ctx)
+        except Interrupted as err:
+            print(f"{tool}: {err}", file=sys.stderr, flush=True)
+            sys.exit(128 + err.signum)
+        except KeyboardInterrupt:
+            print(f"{tool}: interrupted; nothing more was written", file=sys.stderr, flush=True)
+            _remove_if_empty_run(ctx.run_dir)
+            sys.exit(130)
+        except USER_ERRORS as err:
+            logging.shutdown()
+            _remove_if_empty_run(ctx.run_dir)
+            _fail(tool, str(err))
+
+    _app()

@@ -1,0 +1,495 @@
+"""Typed config schemas of the baselines and of the tools (Hydra ConfigStore).
+
+- Agents (``agent`` group): :class:`RandomAgentConfig`, :class:`OracleAgentConfig`,
+  :class:`FeatureAgentConfig` (orb, sift), :class:`RotationAgentConfig`, :class:`PPOAgentConfig`
+  (the learned policy: model + PPO hyper-parameters).
+- Training: :class:`TrainerConfig` (``trainer`` group: the run loop and the algorithm, ``ppo`` or
+  ``dagger``), :class:`SchedulerConfig` (``scheduler``).
+- One primary schema per tool: :class:`TrainConfig`, :class:`EvalConfig`, :class:`MakeDatasetConfig`,
+  :class:`RenderEpisodeConfig`, :class:`RenderCorruptionsConfig`.
+
+:func:`register_configs` stores them all (and the core schemas of :mod:`findview.config`); every YAML
+file names its schema in its defaults list, so a wrong type or an unknown key anywhere, presets
+included, fails when Hydra composes the config. Range checks run in ``__post_init__`` when
+:func:`findview_baselines.cli.validate_config` turns the config into objects.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import MISSING
+
+from findview.config import (
+    ConfigError,
+    CorruptionConfig,
+    DatasetConfig,
+    SimConfig,
+    TaskConfig,
+    check,
+    register_core_configs,
+)
+
+__all__ = [
+    "RandomAgentConfig",
+    "OracleAgentConfig",
+    "FeatureAgentConfig",
+    "RotationAgentConfig",
+    "PPOAgentConfig",
+    "DAggerConfig",
+    "TrainerConfig",
+    "SchedulerConfig",
+    "TrainConfig",
+    "EvalConfig",
+    "MakeDatasetConfig",
+    "RenderEpisodeConfig",
+    "RenderCorruptionsConfig",
+    "register_configs",
+]
+
+DIFFICULTY_NAMES = ("easy", "medium", "hard")
+
+
+# ------------------------------------------------------------------------------------------------
+# Agents
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class RandomAgentConfig:
+    """Uniformly random actions over up / down / left / right / stop (one seeded stream per episode)."""
+
+    name: str = "random"
+    """Agent name (make_agent key)."""
+
+
+@dataclass
+class OracleAgentConfig:
+    """The shortest path from the episode's privileged rotations (eps 0, SPL 1 by construction)."""
+
+    name: str = "oracle"
+    """Agent name (make_agent key)."""
+    order: str = "pitch_first"
+    """pitch_first | yaw_first: which axis to close first (both are shortest paths)."""
+    pitch_bound: int = 60
+    """Pitch clamp of the task, degrees (must match task.pitch_bound)."""
+    step_deg: int = 1
+    """Degrees per move (must match task.step_deg)."""
+
+    def __post_init__(self) -> None:
+        check(self.order in ("pitch_first", "yaw_first"), "agent.order", self.order, "pitch_first | yaw_first")
+
+
+def _check_d_thresh(value: Any) -> None:
+    """``d_thresh``: one number (or ``inf``) for every difficulty, or ``{easy, medium, hard}`` numbers."""
+    items = dict(value) if isinstance(value, dict) else {"all": value}
+    for key, v in items.items():
+        ok = (key == "all" or key in DIFFICULTY_NAMES) and isinstance(v, (int, float)) and not isinstance(v, bool)
+        ok = ok and (v >= 0 or math.isinf(v))
+        check(ok, "agent.d_thresh", value, "a descriptor distance >= 0 (or inf), or {easy, medium, hard} of them")
+
+
+@dataclass
+class FeatureAgentConfig:
+    """The paper's rule-based agents (``orb`` and ``sift``): match features of view and target, each
+    match votes for the move that reduces its displacement (docs/TASK.md, section Rule-based agents)."""
+
+    name: str = MISSING
+    """orb | sift (the detector)."""
+    n_features: int = 500
+    """Keypoints per image."""
+    ratio: float = 0.7
+    """Lowe ratio test on the 2 nearest neighbours."""
+    d_thresh: Any = field(default_factory=lambda: {"easy": math.inf, "medium": math.inf, "hard": math.inf})
+    """Max descriptor distance of a voting match, per difficulty ({easy, medium, hard}) or one value for
+    all (``agent.d_thresh=50``); tuned on val among 10, 20, ..., 100, inf."""
+    min_keypoints: int = 10
+    """Fewer keypoints in view or target: repeat the previous action."""
+    min_matches: int = 10
+    """Fewer ratio-test matches: repeat the previous action."""
+    stop_px: float = 1.0
+    """A match votes stop when |dx| and |dy| are both below this, pixels."""
+    osc_window: int = 4
+    """Last N actions (this one included) checked for oscillation; < 2 disables."""
+    osc_rule: str = "alternating"
+    """alternating (L,R,L,R / U,D,U,D) | mixed (one axis, both directions)."""
+    threads: int = 2
+    """Environment slots processed in parallel (OpenCV releases the GIL)."""
+    cv2_threads: Optional[int] = 1
+    """OpenCV threads while the agent acts, restored afterwards (null: leave OpenCV's setting)."""
+
+    def __post_init__(self) -> None:
+        check(self.name in ("orb", "sift"), "agent.name", self.name, "orb | sift")
+        _check_d_thresh(self.d_thresh)
+        check(self.n_features >= 1, "agent.n_features", self.n_features, "a positive number of keypoints")
+        check(0 < self.ratio <= 1, "agent.ratio", self.ratio, "a ratio in (0, 1]")
+        check(self.osc_rule in ("alternating", "mixed"), "agent.osc_rule", self.osc_rule, "alternating | mixed")
+        check(self.threads >= 1, "agent.threads", self.threads, "a positive number of threads")
+
+
+@dataclass
+class RotationAgentConfig:
+    """Relative-rotation estimation from feature matches, then a straight walk (beyond the paper)."""
+
+    name: str = "rotation"
+    """Agent name (make_agent key)."""
+    fov: float = 90.0
+    """Field of view of the rendered views, degrees (must match sim.fov)."""
+    detector: str = "sift"
+    """sift | orb."""
+    n_features: int = 500
+    """Keypoints per image."""
+    ratio: float = 0.8
+    """Lowe ratio for candidate matches (RANSAC removes outliers)."""
+    inlier_px: float = 2.0
+    """RANSAC inlier tolerance, pixels at the image centre."""
+    ransac_iters: int = 200
+    """RANSAC iterations."""
+    min_inliers: int = 5
+    """Inliers needed to trust an estimate."""
+    pitch_bound: int = 60
+    """Pitch clamp of the task, degrees (must match task.pitch_bound)."""
+    pitch_tol: float = 10.0
+    """Estimated absolute pitches beyond pitch_bound + pitch_tol are rejected, degrees."""
+    reestimate_every: int = 4
+    """Moves between estimates while walking (and always on arrival)."""
+    sweep_check_every: int = 3
+    """Moves between estimate attempts while sweeping."""
+    sweep_pitch: Optional[float] = None
+    """Pitch change between sweep rows, degrees (null: fov / 2)."""
+    max_arrivals: int = 6
+    """Arrivals that still ask for moves before giving up with stop."""
+    threads: int = 2
+    """Environment slots processed in parallel."""
+    cv2_threads: Optional[int] = 1
+    """OpenCV threads while the agent acts (null: leave OpenCV's setting)."""
+
+    def __post_init__(self) -> None:
+        check(self.detector in ("sift", "orb"), "agent.detector", self.detector, "sift | orb")
+        check(0 < self.fov < 180, "agent.fov", self.fov, "a field of view in (0, 180) degrees")
+        check(self.min_inliers >= 3, "agent.min_inliers", self.min_inliers, "at least 3 inliers")
+
+
+POLICY_VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation")
+
+
+@dataclass
+class PPOAgentConfig:
+    """The learned agent: its network and the PPO hyper-parameters (paper section 4 and appendix;
+    docs/TASK.md, section PPO baseline)."""
+
+    name: str = "ppo"
+    """Agent name."""
+    variant: str = "early_fusion"
+    """Network: early_fusion (the paper's) | goal_encoder | siamese | correlation."""
+    hidden_size: int = 512
+    """Encoder feature size and GRU state size."""
+    aux_coef: float = 0.0
+    """Weight of the auxiliary loss (relative rotation regression + overlap classification); 0 = off."""
+    lr: float = 2.5e-4
+    """Adam learning rate."""
+    adam_eps: float = 1.0e-5
+    """Adam's epsilon (numerical floor of the denominator), not the localization error."""
+    clip: float = 0.2
+    """PPO ratio clip (also the value-loss clip)."""
+    value_coef: float = 0.5
+    """Value-loss weight."""
+    entropy_coef: float = 0.01
+    """Entropy-bonus weight."""
+    max_grad_norm: float = 0.5
+    """Gradient-norm clip."""
+    gamma: float = 0.99
+    """Discount per step."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    ppo_epochs: int = 4
+    """Passes over each rollout."""
+    num_mini_batches: int = 1
+    """Mini-batches per epoch (they split environments, so at most trainer.num_envs)."""
+    rollout_steps: int = 128
+    """Steps per environment per update."""
+    linear_decay: bool = True
+    """Decay lr and clip linearly to 0 over the run."""
+    clipped_value_loss: bool = True
+    """Clip the value loss like the policy ratio."""
+    normalize_advantage: bool = True
+    """Normalise advantages per mini-batch."""
+    sample: bool = False
+    """Draw actions from the policy at validation / evaluation time instead of taking the argmax."""
+
+    def __post_init__(self) -> None:
+        check(self.variant in POLICY_VARIANTS, "agent.variant", self.variant, " | ".join(POLICY_VARIANTS))
+        check(self.hidden_size >= 1, "agent.hidden_size", self.hidden_size, "a positive size")
+        check(self.lr > 0, "agent.lr", self.lr, "a positive learning rate")
+        check(self.adam_eps > 0, "agent.adam_eps", self.adam_eps, "a positive number")
+        check(self.rollout_steps >= 1, "agent.rollout_steps", self.rollout_steps, "a positive number of steps")
+        check(self.ppo_epochs >= 1, "agent.ppo_epochs", self.ppo_epochs, "a positive number of epochs")
+        check(self.num_mini_batches >= 1, "agent.num_mini_batches", self.num_mini_batches, "a positive integer")
+        check(0 < self.gamma <= 1, "agent.gamma", self.gamma, "a discount in (0, 1]")
+        check(self.aux_coef >= 0, "agent.aux_coef", self.aux_coef, "0 (off) or a positive weight")
+
+
+# ------------------------------------------------------------------------------------------------
+# Training
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DAggerConfig:
+    """Imitation of the oracle (``trainer.algorithm=dagger``): roll out the learner mixed with the
+    oracle, label every visited state with the oracle's action, train with cross-entropy."""
+
+    rollout_steps: int = 64
+    """Steps per environment per update."""
+    beta_start: float = 1.0
+    """Probability of executing the oracle's action at update 0."""
+    beta_end: float = 0.0
+    """... after beta_decay_updates updates."""
+    beta_decay_updates: int = 200
+    """Updates over which beta decays linearly."""
+    buffer_size: int = 50000
+    """Labelled states kept (oldest dropped first)."""
+    seq_len: int = 16
+    """Length of the stored sequences the recurrent policy trains on, steps."""
+    batch_sequences: int = 32
+    """Sequences per gradient step."""
+    epochs: int = 1
+    """Passes over (a buffer-sized sample of) the buffer per update."""
+    lr: float = 1.0e-3
+    """Adam learning rate."""
+    adam_eps: float = 1.0e-5
+    """Adam's epsilon."""
+    max_grad_norm: float = 1.0
+    """Gradient-norm clip."""
+    stop_weight: float = 1.0
+    """Cross-entropy weight of states labelled stop."""
+    search_prior: str = "oracle"
+    """Labels where view and target do not overlap: oracle (the shortest path, which no image shows) |
+    sweep (a fixed covering search: pan right along the horizon)."""
+
+
+ALGORITHMS = ("ppo", "dagger")
+
+
+@dataclass
+class TrainerConfig:
+    """The training run (``trainer`` group): algorithm, size, validation, checkpoints, logging."""
+
+    algorithm: str = "ppo"
+    """ppo (the agent config's PPO hyper-parameters) | dagger (trainer.dagger)."""
+    num_updates: int = 30000
+    """Total updates ("full" = 30000, "half" = 15000); drives lr / clip decay and the scheduler."""
+    num_envs: int = 16
+    """Environments stepped together."""
+    seed: int = 0
+    """Seeds torch / numpy / random, the episode sampler and the mini-batch shuffles."""
+    val_interval: int = 1000
+    """Validate every this many updates (0: only at the end, see val_at_end)."""
+    val_at_end: bool = True
+    """Validate after the last update."""
+    val_episodes: Optional[int] = None
+    """Cap on val episodes (spread evenly over the difficulties); null = all."""
+    val_num_envs: Optional[int] = None
+    """Environments for validation; null = num_envs."""
+    val_max_steps: Optional[int] = None
+    """Step limit T of validation episodes; null = task.max_steps."""
+    log_interval: int = 10
+    """TensorBoard scalars every this many updates."""
+    checkpoint_interval: int = 100
+    """Write checkpoints/latest.pth every this many updates (and at every validation and the end)."""
+    resume: bool = True
+    """Continue from checkpoints/latest.pth of the run folder if it exists."""
+    stop_after: Optional[int] = None
+    """Stop this session after this many updates (latest.pth written; re-run to continue)."""
+    progress: bool = True
+    """tqdm progress bar."""
+    torch_threads: Optional[int] = None
+    """CPU threads for torch (null: findview's policy, see findview.runtime)."""
+    dagger: DAggerConfig = field(default_factory=DAggerConfig)
+    """DAgger settings (used when algorithm=dagger)."""
+
+    def __post_init__(self) -> None:
+        check(self.algorithm in ALGORITHMS, "trainer.algorithm", self.algorithm, " | ".join(ALGORITHMS))
+        check(self.num_updates >= 1, "trainer.num_updates", self.num_updates, "a positive number of updates")
+        check(self.num_envs >= 1, "trainer.num_envs", self.num_envs, "a positive number of environments")
+        for key in ("val_interval", "log_interval", "checkpoint_interval"):
+            value = getattr(self, key)
+            check(value >= 0, f"trainer.{key}", value, "0 or a positive number of updates")
+        for key in ("val_episodes", "val_num_envs", "val_max_steps", "stop_after", "torch_threads"):
+            value = getattr(self, key)
+            check(value is None or value >= 1, f"trainer.{key}", value, "null or a positive integer")
+
+
+@dataclass
+class SchedulerConfig:
+    """Difficulty curriculum (``scheduler``): level up every num_updates / num_levels updates."""
+
+    mode: str = "unbounded"
+    """unbounded (paper: level k mixes the first k difficulties) | bounded (level k: only the k-th)."""
+    num_levels: int = 3
+    """Levels (1: easy only; 3: easy -> medium -> hard)."""
+
+    def __post_init__(self) -> None:
+        check(self.mode in ("unbounded", "bounded"), "scheduler.mode", self.mode, "unbounded | bounded")
+        check(1 <= self.num_levels <= 3, "scheduler.num_levels", self.num_levels, "1, 2 or 3")
+
+
+# ------------------------------------------------------------------------------------------------
+# Tools
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TrainConfig:
+    """``tools/train.py``."""
+
+    dataset: DatasetConfig = MISSING
+    sim: SimConfig = MISSING
+    task: TaskConfig = MISSING
+    corruption: CorruptionConfig = MISSING
+    agent: Any = MISSING
+    trainer: TrainerConfig = MISSING
+    scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
+    init_from: Optional[str] = None
+    """Checkpoint to start from: weights only (model signature checked), fresh optimizer."""
+
+
+@dataclass
+class EvalConfig:
+    """``tools/eval.py``."""
+
+    dataset: DatasetConfig = MISSING
+    sim: SimConfig = MISSING
+    task: TaskConfig = MISSING
+    corruption: CorruptionConfig = MISSING
+    agent: Any = MISSING
+    split: str = "test"
+    """val | test: runs <dataset.out_dir>/episodes/<split>_fov<sim.fov>.json."""
+    episodes: Optional[str] = None
+    """An explicit episode file instead (dataset.out_dir and split are then ignored)."""
+    difficulty: Optional[str] = None
+    """null = easy, medium and hard; or one of easy | medium | hard."""
+    max_episodes: Optional[int] = None
+    """Only the first N episodes (after the difficulty filter)."""
+    num_envs: int = 16
+    """Episodes run in parallel (results do not depend on it)."""
+    seed: int = 0
+    """Agent seed (agents derive one random stream per episode from it)."""
+    checkpoint: Optional[str] = None
+    """A learned-agent checkpoint to evaluate (implies agent=ppo; view size, FoV and model come from it
+    unless overridden on the command line)."""
+    video: int = 0
+    """Render the first N episodes as MP4 (current view | target | panorama)."""
+    video_fps: float = 30.0
+    """Frames per second of the videos."""
+    video_pano_height: Optional[int] = None
+    """Panorama strip height in the videos, pixels (null: the view height)."""
+    progress: bool = True
+    """tqdm progress bar (counts episodes and steps)."""
+    torch_threads: Optional[int] = None
+    """CPU threads for torch (null: findview's policy, see findview.runtime)."""
+
+    def __post_init__(self) -> None:
+        check(self.split in ("train", "val", "test"), "split", self.split, "val | test (or train)")
+        check(self.difficulty in (None, *DIFFICULTY_NAMES), "difficulty", self.difficulty, "null | easy | medium | hard")
+        check(self.max_episodes is None or self.max_episodes >= 1, "max_episodes", self.max_episodes, "null or >= 1")
+        check(self.num_envs >= 1, "num_envs", self.num_envs, "a positive number of environments")
+        check(self.video >= 0, "video", self.video, "0 or a number of episodes")
+        check(self.torch_threads is None or self.torch_threads >= 1, "torch_threads", self.torch_threads, "null or >= 1")
+
+
+@dataclass
+class MakeDatasetConfig:
+    """``tools/make_dataset.py``."""
+
+    dataset: DatasetConfig = MISSING
+    sim: SimConfig = MISSING
+    task: TaskConfig = MISSING
+    force: bool = True
+    """Rebuild splits and episodes even when matching files exist."""
+    progress: bool = True
+    """tqdm progress bars."""
+
+
+@dataclass
+class RenderEpisodeConfig:
+    """``tools/render_episode.py``."""
+
+    dataset: DatasetConfig = MISSING
+    sim: SimConfig = MISSING
+    task: TaskConfig = MISSING
+    split: str = "test"
+    """Episode file <dataset.out_dir>/episodes/<split>_fov<sim.fov>.json."""
+    episodes: Optional[str] = None
+    """Or an explicit episode file."""
+    episode_index: int = 0
+    """Which episode of the file (0-based)."""
+    image: Optional[str] = None
+    """Explicit mode: a panorama file ..."""
+    init: Optional[list[int]] = None
+    """... with [pitch, yaw] of the initial view, degrees ..."""
+    target: Optional[list[int]] = None
+    """... and [pitch, yaw] of the target view, degrees."""
+    out: Optional[str] = None
+    """PNG path (null: <run folder>/<episode id>.png)."""
+    pano_height: Optional[int] = None
+    """Panorama height in the picture, pixels (null: twice the view height)."""
+    labels: bool = True
+    """Caption the two views."""
+
+
+@dataclass
+class RenderCorruptionsConfig:
+    """``tools/render_corruptions.py``: one target image under all 16 corruptions."""
+
+    dataset: DatasetConfig = MISSING
+    sim: SimConfig = MISSING
+    task: TaskConfig = MISSING
+    split: str = "test"
+    """Episode file to take the target from."""
+    episode_index: int = 0
+    """Which episode's target (0-based)."""
+    image: Optional[str] = None
+    """Or a panorama file ..."""
+    target: Optional[list[int]] = None
+    """... and the [pitch, yaw] of the view to corrupt, degrees."""
+    severity: int = 3
+    """Severity 1-5."""
+    seed: int = 0
+    """Seed of the random corruptions."""
+    out: Optional[str] = None
+    """PNG path (null: <run folder>/corruptions_s<severity>.png)."""
+
+    def __post_init__(self) -> None:
+        check(1 <= self.severity <= 5, "severity", self.severity, "an integer 1-5")
+
+
+_REGISTERED = False
+
+
+def register_configs() -> None:
+    """Store every schema in Hydra's ConfigStore. Idempotent; called by the tools before composing."""
+    global _REGISTERED
+    if _REGISTERED:
+        return
+    from hydra.core.config_store import ConfigStore
+
+    register_core_configs()
+    cs = ConfigStore.instance()
+    cs.store(group="agent", name="base_random", node=RandomAgentConfig)
+    cs.store(group="agent", name="base_oracle", node=OracleAgentConfig)
+    cs.store(group="agent", name="base_feature", node=FeatureAgentConfig)
+    cs.store(group="agent", name="base_rotation", node=RotationAgentConfig)
+    cs.store(group="agent", name="base_ppo", node=PPOAgentConfig)
+    cs.store(group="trainer", name="base_trainer", node=TrainerConfig)
+    cs.store(name="train_schema", node=TrainConfig)
+    cs.store(name="eval_schema", node=EvalConfig)
+    cs.store(name="make_dataset_schema", node=MakeDatasetConfig)
+    cs.store(name="render_episode_schema", node=RenderEpisodeConfig)
+    cs.store(name="render_corruptions_schema", node=RenderCorruptionsConfig)
+    _REGISTERED = True
+
+
+__all__ += ["ConfigError"]
