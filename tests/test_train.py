@@ -1,4 +1,4 @@
-"""The PPO training run (findview_baselines.rl.trainer.train, tools/train.py): exact resume, checkpoint
+"""The training run (findview_baselines.rl.run.train, tools/train.py): exact resume, checkpoint
 files, fine-tuning signature checks, NaN handling and early failure on an unwritable run folder.
 
 Everything runs on CPU with a tiny setup: 48x48 views, 2 envs, 8-step rollouts, GRU 32, 300-step
@@ -21,7 +21,8 @@ import pytest
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from findview_baselines.rl.trainer import TrainingDiverged, select_val_episodes, train
+from findview_baselines.cli import UserError, compose_config
+from findview_baselines.rl.run import TrainingDiverged, select_val_episodes, train
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 48
@@ -58,26 +59,15 @@ def dataset_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("dataset_out")
 
 
-def dataset_config(root: Path, out_dir: Path) -> DictConfig:
-    """The ``folder`` dataset config pointed at ``root`` (3 val episodes: 1 image x 3 difficulties)."""
-    path = REPO / "configs" / "dataset" / "folder.yaml"
-    base = OmegaConf.load(path) if path.is_file() else OmegaConf.create({"kind": "folder"})
-    base.name = "testfolder"
-    base.root = str(root)
-    base.out_dir = str(out_dir)
-    return base
+def _value(v: Any) -> str:
+    return "null" if v is None else str(v)
 
 
 def make_config(root: Path, out_dir: Path, **overrides: Any) -> DictConfig:
-    """configs/train.yaml composed by hand (no Hydra) with the tiny test settings, then ``overrides``."""
-    cfg = OmegaConf.load(REPO / "configs" / "train.yaml")
-    for key in ("defaults", "hydra"):
-        cfg.pop(key)
-    cfg.dataset = dataset_config(root, out_dir)
-    cfg.sim = OmegaConf.load(REPO / "configs" / "sim" / "fov90.yaml")
-    cfg.task = OmegaConf.load(REPO / "configs" / "task" / "default.yaml")
-    cfg.agent = OmegaConf.load(REPO / "configs" / "agent" / "ppo.yaml")
+    """configs/train.yaml composed like tools/train.py does, on the ``folder`` data set at ``root`` (3 val
+    episodes: 1 image x 3 difficulties), with the tiny test settings, then ``overrides``."""
     tiny = {
+        "dataset": "folder", "dataset.root": root, "dataset.out_dir": out_dir, "dataset.name": "testfolder",
         "sim.height": SIZE, "sim.width": SIZE, "sim.device": "cpu", "sim.prefetch_workers": 0,
         "task.max_steps": 300,
         "agent.hidden_size": 32, "agent.rollout_steps": 8, "agent.ppo_epochs": 2,
@@ -85,9 +75,7 @@ def make_config(root: Path, out_dir: Path, **overrides: Any) -> DictConfig:
         "trainer.log_interval": 1, "trainer.checkpoint_interval": 2, "trainer.progress": False,
         "trainer.torch_threads": 1,  # fastest on a busy 2-core machine (2 threads oversubscribe)
     }
-    for key, value in {**tiny, **overrides}.items():
-        OmegaConf.update(cfg, key, value, force_add=True)
-    return cfg
+    return compose_config("train", [f"{k}={_value(v)}" for k, v in {**tiny, **overrides}.items()])
 
 
 @pytest.fixture()
@@ -160,9 +148,9 @@ def test_checkpoints_load_with_weights_only(reference_run: Path) -> None:
 
 def test_init_from_loads_weights_and_checks_the_model(make_cfg, reference_run: Path, tmp_path: Path) -> None:
     ckpt = reference_run / "checkpoints" / "best.pth"
-    with pytest.raises(ValueError, match=r"height is 48 in the checkpoint but 40"):
+    with pytest.raises(UserError, match=r"best.pth: checkpoint does not fit this model: height is 48 in the checkpoint but 40"):
         train(make_cfg(**{"init_from": str(ckpt), "sim.height": 40}), tmp_path / "other_size")
-    with pytest.raises(ValueError, match=r"hidden_size is 32 in the checkpoint but 16"):
+    with pytest.raises(UserError, match=r"hidden_size is 32 in the checkpoint but 16"):
         train(make_cfg(**{"init_from": str(ckpt), "agent.hidden_size": 16}), tmp_path / "other_hidden")
 
     # same model: fine-tuning starts at update 0 with a fresh optimizer from the checkpoint's weights

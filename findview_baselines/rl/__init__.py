@@ -1,5 +1,7 @@
-"""PPO baseline: recurrent actor-critic policy, rollout storage + GAE, PPO update, difficulty scheduler,
-trainer sketch (rollouts, update, evaluation, checkpoints)."""
+"""Learned agents: the recurrent actor-critic policy (``policy``), rollout storage + GAE (``storage``),
+the PPO update (``ppo``), the PPO update loop (``ppo_trainer``), imitation of the oracle (``dagger``),
+the difficulty curriculum (``scheduler``), the training run with its callbacks (``run``), checkpoints
+(``checkpoint``) and run safety (``safety``: folder lock, signals)."""
 
 from findview_baselines.rl.policy import (
     NUM_ACTIONS,
@@ -10,9 +12,9 @@ from findview_baselines.rl.policy import (
     check_signature,
 )
 from findview_baselines.rl.ppo import PPO, PPOConfig, linear_decay, ppo_loss
+from findview_baselines.rl.ppo_trainer import PPOTrainer
 from findview_baselines.rl.scheduler import DifficultyScheduler
 from findview_baselines.rl.storage import MiniBatch, RolloutStorage
-from findview_baselines.rl.trainer import PPOTrainer, evaluate, load_policy, save_checkpoint
 
 __all__ = [
     "NUM_ACTIONS",
@@ -29,7 +31,4 @@ __all__ = [
     "MiniBatch",
     "RolloutStorage",
     "PPOTrainer",
-    "evaluate",
-    "load_policy",
-    "save_checkpoint",
 ]

@@ -136,8 +136,8 @@ def load_policy(path: str | Path, policy: Policy) -> dict[str, Any]:
     try:
         check_signature(state["signature"], policy.model_signature())
     except ValueError as err:
-        raise UserError(f"{path} does not fit this model: {err} (use a checkpoint of the same agent.variant / "
-                        f"agent.hidden_size / view size, or drop init_from)") from None
+        raise UserError(f"{path}: {err} (use a checkpoint of the same agent.variant / agent.hidden_size / "
+                        f"view size, or drop init_from)") from None
     policy.load_state_dict(state["policy"])
     return state
 
