@@ -38,10 +38,9 @@ if str(REPO) not in sys.path:
 from findview.dataset import EpisodeSampler, ImageEntry  # noqa: E402
 from findview.sim import PanoramaBank, Simulator, resolve_device  # noqa: E402
 from findview.task import FindViewEnv, SampledEpisodeSource  # noqa: E402
-from findview_baselines.rl.checkpoint import ResumableSampler  # noqa: E402
 from findview_baselines.rl.policy import Policy  # noqa: E402
 from findview_baselines.rl.ppo import PPOConfig  # noqa: E402
-from findview_baselines.rl.trainer import PPOTrainer, no_distribution_validation  # noqa: E402
+from findview_baselines.rl.ppo_trainer import PPOTrainer, no_distribution_validation  # noqa: E402
 
 
 @dataclass
@@ -93,7 +92,7 @@ def run_setting(setting: Setting, images: list[ImageEntry], device: torch.device
     torch.manual_seed(0)
     bank = PanoramaBank(device, budget_mb=4096, max_panoramas=len(images), min_slots=setting.num_envs)
     sim = Simulator(bank, fov=90, height=setting.size, width=setting.size)
-    sampler = ResumableSampler(EpisodeSampler(images, 90, seed=0))
+    sampler = EpisodeSampler(images, 90, seed=0)
     env = FindViewEnv(sim, SampledEpisodeSource(sampler, level=3), setting.num_envs)
     policy = Policy(setting.size, setting.size, "early_fusion", 512).to(device)
     cfg = PPOConfig(rollout_steps=setting.rollout_steps, num_mini_batches=setting.num_mini_batches)

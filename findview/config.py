@@ -120,14 +120,14 @@ class TaskConfig:
 
     def __post_init__(self) -> None:
         check(self.max_steps >= 1, "task.max_steps", self.max_steps, "a positive number of steps")
-        check(0 < self.pitch_bound <= 90, "task.pitch_bound", self.pitch_bound, "an integer in (0, 90] degrees")
+        check(0 <= self.pitch_bound <= 90, "task.pitch_bound", self.pitch_bound, "an integer in [0, 90] degrees")
         check(self.step_deg >= 1, "task.step_deg", self.step_deg, "a positive integer number of degrees")
 
 
 @dataclass
 class DatasetConfig:
     """A data set of equirectangular panoramas, its splits and its static val/test episodes (``dataset``
-    group; docs/TASK.md, section Data sets and splits)."""
+    group; docs/TASK.md, section Datasets and splits)."""
 
     name: str = "synthetic"
     """Data set name (used in output folder names)."""
@@ -174,7 +174,7 @@ class DatasetConfig:
         check(self.hard_rule in HARD_RULES, "dataset.hard_rule", self.hard_rule, "or | and")
         check(len(self.split) == 3 and all(r >= 0 for r in self.split) and sum(self.split) > 0,
               "dataset.split", list(self.split), "three non-negative ratios [train, val, test]")
-        check(self.episodes_per_image >= 1, "dataset.episodes_per_image", self.episodes_per_image, "a positive integer")
+        check(self.episodes_per_image >= 0, "dataset.episodes_per_image", self.episodes_per_image, "0 or more episodes")
         check(all(0 < f < 180 for f in self.episode_fovs), "dataset.episode_fovs", list(self.episode_fovs),
               "fields of view in (0, 180) degrees")
         bad = [s for s in self.splits_to_make if s not in ("train", "val", "test")]

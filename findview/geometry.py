@@ -1,7 +1,7 @@
 """Rotation arithmetic on integer-degree (pitch, yaw) pairs.
 
-Conventions (SPEC section 1-3): ``+pitch`` looks up, ``+yaw`` pans right, yaw lives in ``(-180, 180]``,
-distances are in degrees. Functions accept Python ints, numpy arrays or torch tensors.
+Conventions (docs/TASK.md, World and camera; Metrics): ``+pitch`` looks up, ``+yaw`` pans right, yaw
+lives in ``(-180, 180]``, distances are in degrees. Functions accept Python ints, numpy arrays or torch tensors.
 """
 
 from __future__ import annotations

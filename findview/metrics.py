@@ -1,4 +1,4 @@
-"""Per-episode records and the paper's aggregate metrics (SPEC section 3).
+"""Per-episode records and the paper's aggregate metrics (docs/TASK.md, Metrics).
 
 An *episode record* is a plain dict (JSON-serialisable) with the keys listed in ``RECORD_KEYS``
 (see docs/ARCHITECTURE.md, "Episode record")::
@@ -158,7 +158,7 @@ def aggregate(records: Iterable[Mapping[str, Any]]) -> dict[str, float | int]:
 def summarize(
     records: Iterable[Mapping[str, Any]], include_all: bool = False, by: str = "difficulty"
 ) -> dict[str, dict[str, float | int]]:
-    """Aggregate records per difficulty (SPEC section 3).
+    """Aggregate records per difficulty (docs/TASK.md, Metrics).
 
     Args:
         records: episode records (see module docstring).

@@ -406,7 +406,6 @@ class MakeDatasetConfig:
 
     dataset: DatasetConfig = MISSING
     sim: SimConfig = MISSING
-    task: TaskConfig = MISSING
     force: bool = True
     """Rebuild splits and episodes even when matching files exist."""
     progress: bool = True

@@ -41,3 +41,41 @@ def sun360_mini_files(sun360_mini: Path) -> list[Path]:
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO
+
+
+# ---- the tiny training setup shared by test_train.py and test_run_safety.py ----------------------
+import cv2  # noqa: E402
+
+from _training import blob_panorama, make_config  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def panorama_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """10 small textured panoramas (256x128) in one folder."""
+    root = tmp_path_factory.mktemp("panoramas")
+    for i in range(10):
+        cv2.imwrite(str(root / f"pano_{i:03d}.png"), blob_panorama(100 + i))
+    return root
+
+
+@pytest.fixture(scope="session")
+def dataset_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("dataset_out")
+
+
+@pytest.fixture()
+def make_cfg(panorama_folder: Path, dataset_out: Path):
+    return lambda **overrides: make_config(panorama_folder, dataset_out, **overrides)
+
+
+@pytest.fixture(scope="session")
+def reference_run(panorama_folder: Path, dataset_out: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """6 updates in one go (levels 1, 2, 3 at updates 0, 2, 4; validation at 3 and 6)."""
+    from findview_baselines.rl.run import train
+
+    run_dir = tmp_path_factory.mktemp("run_full")
+    result = train(make_config(panorama_folder, dataset_out), run_dir)
+    assert result.completed and result.updates == 6 and result.env_steps == 6 * 8 * 2
+    return run_dir
+
+

@@ -59,7 +59,7 @@ def _write(path: Path, h: int = 64, w: int = 128, channels: int = 3, seed: int =
 
 
 def _rule(dp: np.ndarray, dy: np.ndarray, difficulty: str, f: float, T: int = 5000, hard_rule: str = "or") -> np.ndarray:
-    """The SPEC section 4 rules written out independently of the implementation."""
+    """The docs/TASK.md (Difficulties) rules written out independently of the implementation."""
     l1 = dp + dy
     base = (l1 > 10) & (l1 < T)
     if difficulty == "easy":
@@ -386,6 +386,85 @@ def test_sampler_is_fast() -> None:
     assert time.perf_counter() - t0 < 3.0  # ~0.1 s on one core
 
 
+def test_sampler_level_modes() -> None:
+    images = [ImageEntry(f"/data/img{i}.jpg", "a") for i in range(4)]
+    s = EpisodeSampler(images, fov=90, seed=7)
+    for k, d in enumerate(DIFFICULTIES, start=1):
+        assert {s.sample_level(k, mode="bounded").difficulty for _ in range(60)} == {d}
+    two = [s.sample_level(2, mode="unbounded").difficulty for _ in range(400)]
+    assert set(two) == {"easy", "medium"} and 120 < two.count("easy") < 280  # 200 expected, ~7 sigma
+    # bounded level k is exactly the stream of sample(k-th difficulty): no extra random draw
+    a, b = EpisodeSampler(images, 90, seed=8), EpisodeSampler(images, 90, seed=8)
+    assert [a.sample_level(2, "bounded") for _ in range(30)] == [b.sample("medium") for _ in range(30)]
+    with pytest.raises(ValueError, match="curriculum mode 'sideways'"):
+        s.sample_level(1, mode="sideways")
+
+
+def _roundtrip(state: dict) -> dict:
+    """``state`` through torch.save / torch.load(weights_only=True), as in a checkpoint."""
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    buf.seek(0)
+    return torch.load(buf, weights_only=True)
+
+
+@pytest.mark.parametrize("mode", ["unbounded", "bounded"])
+def test_sampler_state_resumes_exactly(mode: str) -> None:
+    images = [ImageEntry(f"/data/img{i}.jpg", f"l{i % 2}") for i in range(5)]
+    # buffer=8: the N and M draws cross several refills of the rotation pools
+    a = EpisodeSampler(images, fov=60, seed=11, buffer=8)
+    for i in range(37):  # N episodes
+        a.sample_level(1 + i % 3, mode)
+    state = _roundtrip(a.state_dict())
+    json.dumps(state)  # plain values only
+    after = [a.sample_level(1 + i % 3, mode) for i in range(50)]  # M episodes
+    b = EpisodeSampler(images, fov=60, seed=11, buffer=8)
+    b.load_state_dict(state)
+    assert [b.sample_level(1 + i % 3, mode) for i in range(50)] == after
+    fresh = EpisodeSampler(images, fov=60, seed=11, buffer=8)
+    assert [fresh.sample_level(1 + i % 3, mode) for i in range(50)] != after  # the state did matter
+    for other in (EpisodeSampler(images, fov=90, seed=11, buffer=8), EpisodeSampler(images, fov=60, seed=12)):
+        with pytest.raises(ValueError, match=r"(fov|seed)=.*cannot continue"):
+            other.load_state_dict(state)
+    with pytest.raises(ValueError, match="not an EpisodeSampler state"):
+        b.load_state_dict({"level": 1})
+
+
+@pytest.mark.parametrize("mode", ["unbounded", "bounded"])
+def test_sampled_source_level_mode_and_resume(mode: str) -> None:
+    from findview.task.sources import SampledEpisodeSource
+
+    images = [ImageEntry(f"/data/img{i}.jpg", "a") for i in range(3)]
+    src = SampledEpisodeSource(EpisodeSampler(images, 90, seed=2, buffer=8), level=2, lookahead=4, mode=mode)
+    assert len(src.peek(4)) == 4
+    got = {src.next().difficulty for _ in range(200)}
+    assert got == ({"medium"} if mode == "bounded" else {"easy", "medium"})
+    src.peek(4)  # queued level-2 episodes are dropped when the level changes
+    src.level = 3
+    got = [src.next().difficulty for _ in range(300)]
+    if mode == "bounded":
+        assert set(got) == {"hard"}
+    else:
+        assert set(got) == set(DIFFICULTIES) and all(60 < got.count(d) < 140 for d in DIFFICULTIES)
+    src.peek(3)
+    state = _roundtrip(src.state_dict())
+    after = [src.next() for _ in range(40)]
+    again = SampledEpisodeSource(EpisodeSampler(images, 90, seed=2, buffer=8), level=1, lookahead=4, mode=mode)
+    again.load_state_dict(state)
+    assert again.level == 3 and [again.next() for _ in range(40)] == after
+    other = "bounded" if mode == "unbounded" else "unbounded"
+    with pytest.raises(ValueError, match="curriculum mode"):
+        SampledEpisodeSource(EpisodeSampler(images, 90, seed=2), mode=other).load_state_dict(state)
+    with pytest.raises(ValueError, match="level must be an integer in"):
+        src.level = 4
+    with pytest.raises(ValueError, match="unknown curriculum mode"):
+        SampledEpisodeSource(EpisodeSampler(images, 90), mode="easy-first")
+
+
 # ---------------------------------------------------------------------------------------------------
 # static episode files
 # ---------------------------------------------------------------------------------------------------
@@ -451,15 +530,70 @@ def test_ensure_dataset_builds_then_reuses(tmp_path: Path) -> None:
     assert "test" in s.format() and str(ep90) in s.format()
 
 
+def _file_state(*paths: Path) -> list[tuple[int, bytes]]:
+    return [(p.stat().st_mtime_ns, p.read_bytes()) for p in paths]
+
+
+def test_static_episodes_depend_on_the_dataset_only(tmp_path: Path) -> None:
+    root, out = tmp_path / "imgs", tmp_path / "out"
+    _toy_folder(root)
+    cfg = {"name": "toy", "kind": "folder", "root": str(root), "out_dir": str(out), "split": [0.2, 0.4, 0.4]}
+    ensure_dataset(cfg, [90], pitch_bound=60, max_steps=5000, progress=False)
+    files = [out / "splits.json", episode_file(out, "val", 90), episode_file(out, "test", 90)]
+    before = _file_state(*files)
+    # other task.max_steps (the old code resampled with L1 < 40 here): nothing is rewritten
+    for max_steps in (40, 200, 100000):
+        assert ensure_dataset(cfg, [90], pitch_bound=60, max_steps=max_steps, progress=False) == out
+    assert _file_state(*files) == before
+    # T of the static episodes is a dataset setting, with the benchmark's default 5000
+    eps = load_episodes(files[2])
+    assert max(abs(e.init_pitch - e.target_pitch) + yaw_diff(e.init_yaw, e.target_yaw) for e in eps) >= 40
+    # another pitch clamp than the episodes were made for: one line naming the file, both bounds, the fix
+    with pytest.raises(DatasetError) as err:
+        ensure_dataset(cfg, [90], pitch_bound=45, progress=False)
+    msg = str(err.value)
+    assert "\n" not in msg and str(episode_file(out, "val", 90)) in msg
+    assert "dataset.episode_pitch_bound=60" in msg and "task.pitch_bound=45" in msg
+    assert "python tools/make_dataset.py" in msg and "dataset.episode_pitch_bound=45" in msg
+    assert _file_state(*files) == before
+    # no episode files needed (splits_to_make=[]): any clamp is fine
+    ensure_dataset({**cfg, "splits_to_make": []}, [90], pitch_bound=0, progress=False)
+    # changed dataset episode settings: ensure_dataset refuses to overwrite, naming the key
+    with pytest.raises(DatasetError, match=r"val_fov90.json was made for other settings \(dataset.episode_seed 0 "
+                                           r"in the file, 3 now\).*make_dataset.py"):
+        ensure_dataset({**cfg, "episode_seed": 3}, [90], progress=False)
+    with pytest.raises(DatasetError, match=r"splits.json was made for other dataset settings \(split_seed 0 "
+                                           r"in the file, 1 now\)"):
+        ensure_dataset({**cfg, "split_seed": 1}, [90], progress=False)
+    assert _file_state(*files) == before
+    # a new FoV is only added
+    ensure_dataset(cfg, [60], progress=False)
+    assert episode_file(out, "test", 60).is_file() and _file_state(*files) == before
+    # make_dataset (prepare_dataset) rebuilds from the dataset keys
+    s = prepare_dataset({**cfg, "episode_pitch_bound": 20, "episode_max_steps": 100}, [90], progress=False)
+    assert not s.episodes_reused[("test", 90.0)]
+    eps = load_episodes(files[2])
+    assert all(abs(p) <= 20 for e in eps for p in (e.init_pitch, e.target_pitch))
+    assert all(10 < abs(e.init_pitch - e.target_pitch) + yaw_diff(e.init_yaw, e.target_yaw) < 100 for e in eps)
+    assert json.loads(files[2].read_text())["pitch_bound"] == 20
+    ensure_dataset({**cfg, "episode_pitch_bound": 20, "episode_max_steps": 100}, [90], pitch_bound=20,
+                   progress=False)
+    for key, value in (("episode_pitch_bound", 91), ("episode_max_steps", 11), ("episode_max_steps", "many")):
+        with pytest.raises(DatasetError, match=f"dataset.{key}"):
+            ensure_dataset({**cfg, key: value}, [90], progress=False)
+
+
 def test_config_files(tmp_path: Path) -> None:
     required = {"name", "kind", "root", "subset", "out_dir", "split", "split_seed", "episodes_per_image",
-                "episode_seed", "episode_fovs", "hard_rule", "splits_to_make"}
+                "episode_seed", "episode_fovs", "episode_pitch_bound", "episode_max_steps", "hard_rule",
+                "splits_to_make"}
     names = {p.stem for p in (REPO / "configs" / "dataset").glob("*.yaml")}
     assert {"synthetic", "sun360_indoor", "sun360_outdoor", "indoor360", "folder"} <= names
     for name in names:
         cfg = OmegaConf.load(REPO / "configs" / "dataset" / f"{name}.yaml")
         assert required <= set(cfg.keys()), name
         assert cfg.out_dir == f"data/{cfg.name}" and cfg.hard_rule == "or" and cfg.episodes_per_image == 1
+        assert cfg.episode_pitch_bound == 60 and cfg.episode_max_steps == 5000  # the benchmark's T and bound
     # the folder config, used as a node: root / out_dir overrides and ensure_dataset
     root, out = tmp_path / "imgs", tmp_path / "out"
     _toy_folder(root)

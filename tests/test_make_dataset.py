@@ -81,3 +81,24 @@ def test_missing_root(tmp_path: Path) -> None:
     res = _run("dataset=sun360_indoor", "dataset.root=null", cwd=tmp_path)
     assert res.returncode != 0 and "Traceback" not in res.stderr
     assert "dataset.root is not set" in res.stderr and "dataset.root=" in res.stderr
+
+
+def test_episode_settings_are_dataset_keys(tmp_path: Path) -> None:
+    """The static episodes follow dataset.episode_pitch_bound / episode_max_steps (no task.* settings)."""
+    root = tmp_path / "panos"
+    _panos(root, ["a/p1.jpg", "a/p2.jpg", "b/p3.jpg"])
+    res = _run(
+        "dataset=folder", f"dataset.root={root}", "dataset.out_dir=out", "dataset.split=[0,0,1]",
+        "dataset.episode_fovs=[90]", "dataset.episode_pitch_bound=20", "dataset.episode_max_steps=150", cwd=tmp_path,
+    )
+    assert res.returncode == 0, res.stderr
+    path = episode_file(tmp_path / "out", "test", 90)
+    eps = load_episodes(path)
+    assert len(eps) == 3 * len(DIFFICULTIES)
+    for e in eps:
+        assert max(abs(e.init_pitch), abs(e.target_pitch)) <= 20
+        l1 = abs(e.init_pitch - e.target_pitch) + min(abs(e.init_yaw - e.target_yaw) % 360,
+                                                      360 - abs(e.init_yaw - e.target_yaw) % 360)
+        assert 10 < l1 < 150
+    header = json.loads(path.read_text())
+    assert header["pitch_bound"] == 20 and header["max_steps"] == 150

@@ -1,4 +1,4 @@
-"""findview.metrics on hand-computed episodes (SPEC section 3)."""
+"""findview.metrics on hand-computed episodes (docs/TASK.md, Metrics)."""
 
 from __future__ import annotations
 

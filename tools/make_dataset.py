@@ -9,22 +9,22 @@ Examples::
 
 Writes ``<out_dir>/splits.json`` and ``<out_dir>/episodes/<split>_fov<F>.json`` for every split in
 ``dataset.splits_to_make`` and every FoV in ``dataset.episode_fovs`` plus ``sim.fov``, then prints a
-summary. Known problems (bad image, missing folder, impossible difficulty...) end the run with a one-line
-``error: ...`` on stderr and a non-zero exit status.
+summary. The episodes depend on the ``dataset`` config only (``dataset.episode_seed``,
+``episodes_per_image``, ``hard_rule``, ``episode_pitch_bound``, ``episode_max_steps``), never on ``task.*``
+settings (docs/TASK.md, Datasets and splits). Known problems (bad image, missing folder, impossible
+difficulty...) end the run with a one-line ``error: ...`` on stderr and a non-zero exit status.
 """
 
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import hydra
+from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
 
-import hydra  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
-from omegaconf.errors import OmegaConfBaseException  # noqa: E402
-
-from findview.dataset import SamplingError, prepare_dataset  # noqa: E402
+from findview.dataset import SamplingError, prepare_dataset
+from findview_baselines.config import register_configs
 
 
 def _one_line(e: BaseException) -> str:
@@ -40,8 +40,6 @@ def main(cfg: DictConfig) -> None:
         summary = prepare_dataset(
             cfg.dataset,
             fovs,
-            pitch_bound=int(cfg.task.pitch_bound),
-            max_steps=int(cfg.task.max_steps),
             force=bool(cfg.force),
             progress=bool(cfg.progress),
             log=lambda msg: print(msg, flush=True),
@@ -52,4 +50,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    register_configs()  # the typed schemas named in configs/make_dataset.yaml
     main()

@@ -31,7 +31,7 @@ from findview.dataset.discovery import (
 )
 from findview.dataset.episodes import episode_file, load_episodes, make_static_episodes, read_episode_file, write_episode_file
 from findview.dataset.prepare import DatasetSummary, dataset_settings, ensure_dataset, prepare_dataset
-from findview.dataset.sampler import EpisodeSampler, SamplingError, derive_seed, sample_pitch, sample_rotations
+from findview.dataset.sampler import LEVEL_MODES, EpisodeSampler, SamplingError, derive_seed, sample_pitch, sample_rotations
 from findview.dataset.splits import SPLITS, SPLITS_FILE, load_split, read_splits, split_entries, write_splits
 from findview.dataset.synthetic import SCENE_KINDS, ensure_synthetic_images, generate_panorama
 
@@ -39,6 +39,7 @@ __all__ = [
     "DIFFICULTIES",
     "HARD_RULES",
     "KINDS",
+    "LEVEL_MODES",
     "SCENE_KINDS",
     "SPLITS",
     "SPLITS_FILE",

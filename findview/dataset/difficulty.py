@@ -1,4 +1,4 @@
-"""Difficulty rules and the (init, target) rotation distribution (SPEC section 4).
+"""Difficulty rules and the (init, target) rotation distribution (docs/TASK.md, Difficulties).
 
 With ``dpitch = |pitch_init - pitch_target|`` and the wrapped ``dyaw`` (:func:`findview.geometry.yaw_diff`),
 ``L1 = dpitch + dyaw``, ``L2 = sqrt(dpitch^2 + dyaw^2)`` (degrees) and the horizontal FoV ``f`` (degrees):

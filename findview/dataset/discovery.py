@@ -1,6 +1,6 @@
 """Finding panoramas on disk (SUN360, 360-Indoor, any folder) and validating them.
 
-Layouts (SPEC section 5):
+Layouts (docs/TASK.md, Datasets and splits):
 
 - ``sun360``: ``<root>/<indoor|outdoor|others>/<sub-category>/pano_*.jpg``. ``subset`` picks
   ``indoor``, ``outdoor``, ``others`` or ``all``. The label is the sub-category (the first folder below

@@ -68,7 +68,7 @@ def make_static_episodes(
         fov: horizontal FoV, degrees.
         episodes_per_image: K >= 0.
         seed: episode seed (``dataset.episode_seed``).
-        pitch_bound, max_steps, hard_rule: the sampling rules (SPEC section 4).
+        pitch_bound, max_steps, hard_rule: the sampling rules (docs/TASK.md, Difficulties).
 
     Returns:
         ``len(difficulties) * len(images) * K`` episodes, difficulty-major, then image, then k.

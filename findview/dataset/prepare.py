@@ -3,30 +3,39 @@
 :func:`prepare_dataset` is what ``tools/make_dataset.py`` runs; :func:`ensure_dataset` is what train /
 eval call so that the quick start works on a fresh machine. The config keys (``configs/dataset/*.yaml``):
 
-==================== ==============================================================================
-``name``             data set name (``splits.json`` ``dataset`` field); default: ``kind``
-``kind``             ``sun360`` | ``indoor360`` | ``folder`` | ``synthetic``
-``root``             image folder (relative paths resolve against the current directory)
-``subset``           sun360 only: ``indoor`` | ``outdoor`` | ``others`` | ``all``
-``out_dir``          where ``splits.json`` and ``episodes/`` go; default ``data/<name>``
-``split``            ``[train, val, test]`` ratios, default ``[0.8, 0.1, 0.1]``
-``split_seed``       split seed (default 0)
-``episodes_per_image``  K static episodes per image per difficulty (default 1)
-``episode_seed``     static episode seed (default 0)
-``episode_fovs``     FoVs (degrees) with episode files (default ``[90, 60]``)
-``hard_rule``        ``or`` (default) | ``and``
-``splits_to_make``   splits with static episode files (default ``[val, test]``)
-``validate``         decode every image when (re)building the splits (default true)
+======================== ==========================================================================
+``name``                 data set name (``splits.json`` ``dataset`` field); default: ``kind``
+``kind``                 ``sun360`` | ``indoor360`` | ``folder`` | ``synthetic``
+``root``                 image folder (relative paths resolve against the current directory)
+``subset``               sun360 only: ``indoor`` | ``outdoor`` | ``others`` | ``all``
+``out_dir``              where ``splits.json`` and ``episodes/`` go; default ``data/<name>``
+``split``                ``[train, val, test]`` ratios, default ``[0.8, 0.1, 0.1]``
+``split_seed``           split seed (default 0)
+``episodes_per_image``   K static episodes per image per difficulty (default 1)
+``episode_seed``         static episode seed (default 0)
+``episode_fovs``         FoVs (degrees) with episode files (default ``[90, 60]``)
+``episode_pitch_bound``  static episodes have pitches in ``[-b, b]`` degrees (default 60); a tool whose
+                         ``task.pitch_bound`` differs refuses the files (see :func:`ensure_dataset`)
+``episode_max_steps``    static episodes have ``10 < L1 < episode_max_steps`` steps (default 5000);
+                         independent of the ``task.max_steps`` a tool runs with
+``hard_rule``            ``or`` (default) | ``and``
+``splits_to_make``       splits with static episode files (default ``[val, test]``)
+``validate``             decode every image when (re)building the splits (default true)
 ``num_images``, ``seed``, ``width``, ``labels``   synthetic only (see :mod:`findview.dataset.synthetic`)
-==================== ==============================================================================
+======================== ==========================================================================
+
+The static episode files are a function of the ``dataset`` config alone (never of the ``task`` settings
+of the tool that runs; docs/TASK.md, Datasets and splits).
 
 Reuse: ``splits.json`` stores a fingerprint of the split-relevant settings (kind, absolute root, subset,
 ratios, split seed, synthetic parameters); each episode file stores a fingerprint of that plus its own
-settings (split, FoV, K, episode seed, hard rule, pitch bound, max steps). A file whose fingerprint
-matches is reused, anything else is rebuilt. Adding images to a folder does not change the fingerprint:
-run ``tools/make_dataset.py`` (which always rebuilds) after changing the images.
+settings (split, FoV, K, episode seed, hard rule, episode pitch bound, episode max steps).
+:func:`prepare_dataset` reuses a file whose fingerprint matches and rebuilds anything else;
+:func:`ensure_dataset` only writes missing files and raises :class:`DatasetError` (naming the file, the
+differing settings and the ``tools/make_dataset.py`` command) instead of overwriting a file made for
+other settings. Adding images to a folder does not change the fingerprint: run
+``tools/make_dataset.py`` (which always rebuilds) after changing the images.
 """
-
 from __future__ import annotations
 
 import hashlib
@@ -36,14 +45,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
-from findview.dataset.difficulty import check_fov, check_hard_rule, check_pitch_bound
+from findview.dataset.difficulty import MIN_PATH, check_fov, check_hard_rule, check_pitch_bound
 from findview.dataset.discovery import KINDS, DatasetError, ImageEntry, discover, validate_images
 from findview.dataset.episodes import episode_file, make_static_episodes, write_episode_file
 from findview.dataset.splits import SPLITS, SPLITS_FILE, load_split, normalize_ratios, read_splits, split_entries, write_splits
 from findview.dataset.synthetic import GENERATOR_VERSION, SCENE_KINDS, ensure_synthetic_images
 from findview.episode import DIFFICULTIES
 
-__all__ = ["DatasetSummary", "dataset_settings", "prepare_dataset", "ensure_dataset", "resolve_path"]
+__all__ = ["DatasetSummary", "dataset_settings", "prepare_dataset", "ensure_dataset", "make_dataset_command", "resolve_path"]
 
 _EPISODE_FORMAT = 1
 _ENV_HINT = {"sun360": "SUN360_ROOT", "indoor360": "INDOOR360_ROOT"}
@@ -80,6 +89,22 @@ def _to_plain(cfg: Any) -> dict[str, Any]:
     raise DatasetError(f"dataset config must be a mapping, got {type(cfg).__name__}")
 
 
+def _int_key(raw: Mapping[str, Any], key: str, default: int) -> int:
+    """``raw[key]`` as an int (``default`` when absent / null); a one-line error naming the key otherwise."""
+    value = raw.get(key)
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise DatasetError(f"dataset.{key} must be an integer, got {value!r}")
+    try:
+        as_float = float(value)
+    except ValueError:
+        raise DatasetError(f"dataset.{key} must be an integer, got {value!r}") from None
+    if not as_float.is_integer():
+        raise DatasetError(f"dataset.{key} must be an integer, got {value!r}")
+    return int(as_float)
+
+
 def dataset_settings(cfg: Any) -> dict[str, Any]:
     """Validated settings (plain dict with defaults) from a ``dataset`` config (DictConfig or dict)."""
     raw = _to_plain(cfg)
@@ -105,6 +130,8 @@ def dataset_settings(cfg: Any) -> dict[str, Any]:
         "episodes_per_image": raw.get("episodes_per_image", 1),
         "episode_seed": int(raw.get("episode_seed") or 0),
         "episode_fovs": list(raw.get("episode_fovs") if raw.get("episode_fovs") is not None else (90, 60)),
+        "episode_pitch_bound": _int_key(raw, "episode_pitch_bound", 60),
+        "episode_max_steps": _int_key(raw, "episode_max_steps", 5000),
         "hard_rule": check_hard_rule(raw.get("hard_rule") or "or"),
         "splits_to_make": list(raw.get("splits_to_make") if raw.get("splits_to_make") is not None else ("val", "test")),
         "validate": bool(raw.get("validate", True)),
@@ -119,6 +146,15 @@ def dataset_settings(cfg: Any) -> dict[str, Any]:
         raise DatasetError(f"dataset.splits_to_make holds unknown splits {bad}; valid: {', '.join(SPLITS)}")
     for f in st["episode_fovs"]:
         check_fov(f)
+    try:
+        check_pitch_bound(st["episode_pitch_bound"])
+    except ValueError as e:
+        raise DatasetError(f"dataset.episode_pitch_bound: {e}") from None
+    if st["episode_max_steps"] <= MIN_PATH + 1:
+        raise DatasetError(
+            f"dataset.episode_max_steps must be > {MIN_PATH + 1} steps (episodes need {MIN_PATH} < L1 < T), "
+            f"got {st['episode_max_steps']}"
+        )
     if kind == "synthetic":
         st["num_images"] = int(raw.get("num_images") or 40)
         st["seed"] = int(raw.get("seed") or 0)
@@ -200,23 +236,73 @@ class DatasetSummary:
         return "\n".join(lines)
 
 
+_KNOWN_CONFIGS = ("synthetic", "sun360_indoor", "sun360_outdoor", "indoor360", "folder")
+
+
+def make_dataset_command(st: Mapping[str, Any], **overrides: Any) -> str:
+    """The ``tools/make_dataset.py`` command line that (re)builds the files of settings ``st`` (plus
+    ``dataset.<key>=<value>`` ``overrides``)."""
+    name = st["name"]
+    args = [f"dataset={name if name in _KNOWN_CONFIGS else st['kind'] if st['kind'] in _KNOWN_CONFIGS else '<config>'}"]
+    if name not in _KNOWN_CONFIGS:
+        args.append(f"dataset.name={name}")
+    if st["kind"] != "synthetic":
+        args.append(f"dataset.root={st['root']}")
+    for key, value in overrides.items():
+        args.append(f"dataset.{key}={value}")
+    if "out_dir" not in overrides:
+        args.append(f"dataset.out_dir={st['out_dir']}")
+    return "python tools/make_dataset.py " + " ".join(args)
+
+
+def _splits_mismatch(doc: Mapping[str, Any], st: Mapping[str, Any], root: Path) -> str:
+    """Which recorded split settings of a ``splits.json`` document differ from ``st`` (for messages)."""
+    diffs = []
+    recorded = {
+        "kind": (doc.get("kind"), st["kind"]),
+        "root": (doc.get("root"), str(root)),
+        "split_seed": (doc.get("seed"), st["split_seed"]),
+        "split": (doc.get("ratios"), [float(r) for r in normalize_ratios(st["split"])]),
+    }
+    if st["kind"] == "sun360":
+        recorded["subset"] = (doc.get("subset"), st["subset"])
+    for key, (old, new) in recorded.items():
+        if old is not None and old != new:
+            diffs.append(f"{key} {old!r} in the file, {new!r} now")
+    if not diffs:
+        diffs.append("synthetic parameters (num_images, seed, width, labels) or the generator version"
+                     if st["kind"] == "synthetic" else "its fingerprint (written by another version?)")
+    return "; ".join(diffs)
+
+
+def _episodes_mismatch(header: Mapping[str, Any], st: Mapping[str, Any]) -> str:
+    """Which episode settings recorded in an episode-file header differ from ``st`` (for messages)."""
+    recorded = {
+        "episodes_per_image": (header.get("episodes_per_image"), st["episodes_per_image"]),
+        "episode_seed": (header.get("seed"), st["episode_seed"]),
+        "hard_rule": (header.get("hard_rule"), st["hard_rule"]),
+        "episode_pitch_bound": (header.get("pitch_bound"), st["episode_pitch_bound"]),
+        "episode_max_steps": (header.get("max_steps"), st["episode_max_steps"]),
+    }
+    diffs = [f"dataset.{k} {old!r} in the file, {new!r} now" for k, (old, new) in recorded.items() if old != new]
+    return "; ".join(diffs) or "it was made from another splits.json or by another version"
+
+
 def prepare_dataset(
     dataset_cfg: Any,
     fovs: Iterable[float] | None = None,
     *,
-    pitch_bound: int = 60,
-    max_steps: int = 5000,
     force: bool = False,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> DatasetSummary:
-    """Make ``splits.json`` and the static episode files of ``dataset_cfg`` (reusing matching ones).
+    """Make ``splits.json`` and the static episode files of ``dataset_cfg`` (reusing matching ones,
+    rebuilding the others).
 
     Args:
-        dataset_cfg: a ``dataset`` config node or dict (keys in the module docstring).
+        dataset_cfg: a ``dataset`` config node or dict (keys in the module docstring). The episodes
+            follow ``dataset.episode_*`` and ``dataset.hard_rule`` only (docs/TASK.md, Difficulties).
         fovs: FoVs (degrees) to make episode files for; ``None`` = ``dataset.episode_fovs``.
-        pitch_bound: pitch bound of the sampled rotations (``task.pitch_bound``), degrees.
-        max_steps: T (``task.max_steps``); episodes have ``10 < L1 < T``.
         force: rebuild everything (images are still only generated when missing / changed).
         progress: tqdm progress bars.
         log: where to report progress lines (default: silent).
@@ -225,14 +311,98 @@ def prepare_dataset(
         DatasetError, PanoramaError, SamplingError, FileNotFoundError: with messages naming the file,
         folder or setting at fault.
     """
+    return _build(dataset_cfg, fovs, force=force, rewrite=True, progress=progress, log=log)
+
+
+def ensure_dataset(
+    dataset_cfg: Any,
+    fovs: Iterable[float] | None = None,
+    *,
+    pitch_bound: int | None = None,
+    max_steps: int | None = None,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> Path:
+    """Make sure ``splits.json`` and the static episode files for ``fovs`` exist and match ``dataset_cfg``;
+    returns the absolute ``out_dir``.
+
+    Missing files are made (and the synthetic images generated); existing files are never rewritten.
+    Train / eval call this with ``cfg.dataset``, ``[cfg.sim.fov]`` and ``pitch_bound=task.pitch_bound``,
+    then read the files with :func:`findview.dataset.episode_file` / :func:`findview.dataset.load_episodes`
+    / :func:`findview.dataset.load_split`.
+
+    Args:
+        dataset_cfg: a ``dataset`` config node or dict.
+        fovs: FoVs (degrees) whose episode files are needed; ``None`` = ``dataset.episode_fovs``.
+        pitch_bound: the caller's pitch clamp (``task.pitch_bound``, degrees). When given and episode
+            files are needed, it must equal ``dataset.episode_pitch_bound``: episodes sampled for another
+            bound would start or end outside the clamp (or follow another distribution).
+        max_steps: ignored, accepted so that callers may pass ``task.max_steps``: the files keep
+            ``dataset.episode_max_steps``; with a shorter T, episodes whose path is longer than T end in
+            a forced stop.
+        progress: tqdm progress bars.
+        log: where to report progress lines (default: silent).
+
+    Raises:
+        DatasetError: ``splits.json`` or an episode file exists but was made for other settings, or
+            ``pitch_bound`` does not match; a one-line message naming the file, the mismatch and the
+            ``tools/make_dataset.py`` command that makes matching files.
+    """
+    del max_steps  # documented above: the static episodes never depend on the tool's T
+    return _build(dataset_cfg, fovs, force=False, rewrite=False, pitch_bound=pitch_bound, progress=progress,
+                  log=log).out_dir
+
+
+def _build(
+    dataset_cfg: Any,
+    fovs: Iterable[float] | None,
+    *,
+    force: bool,
+    rewrite: bool,
+    pitch_bound: int | None = None,
+    progress: bool,
+    log: Callable[[str], None] | None,
+) -> DatasetSummary:
+    """:func:`prepare_dataset` (``rewrite=True``: stale files are rebuilt) and :func:`ensure_dataset`
+    (``rewrite=False``: stale files raise)."""
     st = dataset_settings(dataset_cfg)
     fov_list = [check_fov(f) for f in (st["episode_fovs"] if fovs is None else fovs)]
     fov_list = list(dict.fromkeys(fov_list))
-    pitch_bound = check_pitch_bound(pitch_bound)
     say = log or (lambda msg: None)
     root = resolve_path(st["root"])
     out_dir = resolve_path(st["out_dir"])
+    splits_path = out_dir / SPLITS_FILE
+    wanted = [(split, fov) for split in st["splits_to_make"] for fov in fov_list]
+    eb = st["episode_pitch_bound"]
+    if pitch_bound is not None and wanted and check_pitch_bound(pitch_bound) != eb:
+        pb = int(pitch_bound)
+        cmd = make_dataset_command(st, episode_pitch_bound=pb, out_dir=f"{st['out_dir']}_pitch{pb}")
+        raise DatasetError(
+            f"{episode_file(out_dir, *wanted[0])}: the static episodes of dataset {st['name']!r} have pitches "
+            f"within +-{eb} degrees (dataset.episode_pitch_bound={eb}) but this run clamps the pitch at "
+            f"task.pitch_bound={pb}; make episodes for it with: "
+            f"{cmd} "
+            f"and pass the same dataset.* overrides to this run (or run with task.pitch_bound={eb})"
+        )
     fp = _splits_fingerprint(st, root)
+
+    doc: dict[str, Any] | None = None
+    if not force and splits_path.is_file():
+        try:
+            doc = read_splits(out_dir)
+        except (ValueError, OSError) as e:
+            if not rewrite:
+                raise DatasetError(f"{splits_path} is unreadable ({' '.join(str(e).split())}); rebuild it with: "
+                                   f"{make_dataset_command(st)}") from None
+            doc = None
+    reused = doc is not None and doc.get("fingerprint") == fp
+    if doc is not None and not reused and not rewrite:
+        raise DatasetError(
+            f"{splits_path} was made for other dataset settings ({_splits_mismatch(doc, st, root)}) and is not "
+            f"overwritten here: rebuild it and the episode files with: {make_dataset_command(st)} "
+            f"plus this run's dataset.* overrides (or choose another dataset.out_dir)"
+        )
+
     entries: list[ImageEntry] | None = None
     if st["kind"] == "synthetic":
         say(f"synthetic images under {root}")
@@ -240,15 +410,7 @@ def prepare_dataset(
             root, st["num_images"], st["seed"], st["width"], st["labels"], progress, workers=st["workers"]
         )
 
-    splits_path = out_dir / SPLITS_FILE
-    reused = False
     splits: dict[str, list[ImageEntry]]
-    if not force and splits_path.is_file():
-        try:
-            doc = read_splits(out_dir)
-            reused = doc.get("fingerprint") == fp
-        except (ValueError, OSError):
-            reused = False
     if reused:
         splits = {s: load_split(out_dir, s) for s in SPLITS}
         say(f"reusing {splits_path}")
@@ -263,7 +425,7 @@ def prepare_dataset(
         write_splits(out_dir, splits, dataset=st["name"], root=root, seed=st["split_seed"], ratios=st["split"], extra=extra)
         say(f"wrote {splits_path}")
 
-    labels = {s: {} for s in SPLITS}
+    labels: dict[str, dict[str, int]] = {s: {} for s in SPLITS}
     for s in SPLITS:
         for e in splits[s]:
             labels[s][e.label] = labels[s].get(e.label, 0) + 1
@@ -272,53 +434,36 @@ def prepare_dataset(
         splits_reused=reused, images={s: len(splits[s]) for s in SPLITS}, labels=labels,
     )
     K = st["episodes_per_image"]
-    for split in st["splits_to_make"]:
-        for fov in fov_list:
-            path = episode_file(out_dir, split, fov)
-            efp = _digest({
-                "splits": fp, "split": split, "fov": fov, "K": K, "seed": st["episode_seed"],
-                "hard_rule": st["hard_rule"], "pitch_bound": pitch_bound, "max_steps": int(max_steps),
-                "format": _EPISODE_FORMAT,
-            })
-            header = None if force or not reused or not path.is_file() else _read_episode_header(path)
-            key = (split, fov)
-            summary.episode_files[key] = path
-            if header is not None and header.get("fingerprint") == efp:
-                summary.episode_counts[key] = dict(header.get("difficulty_counts", {}))
-                summary.episodes_reused[key] = True
-                continue
-            episodes = make_static_episodes(
-                splits[split], split, fov, K, st["episode_seed"], pitch_bound, max_steps, st["hard_rule"]
+    ms = st["episode_max_steps"]
+    for split, fov in wanted:
+        path = episode_file(out_dir, split, fov)
+        # the digest keys are those of the earlier format, so that files made with the defaults stay valid
+        efp = _digest({
+            "splits": fp, "split": split, "fov": fov, "K": K, "seed": st["episode_seed"],
+            "hard_rule": st["hard_rule"], "pitch_bound": eb, "max_steps": ms, "format": _EPISODE_FORMAT,
+        })
+        header = None if force or not path.is_file() else _read_episode_header(path)
+        key = (split, fov)
+        summary.episode_files[key] = path
+        if header is not None and header.get("fingerprint") == efp and (reused or not rewrite):
+            summary.episode_counts[key] = dict(header.get("difficulty_counts", {}))
+            summary.episodes_reused[key] = True
+            continue
+        if not rewrite and path.is_file():
+            why = "unreadable header" if header is None else _episodes_mismatch(header, st)
+            raise DatasetError(
+                f"{path} was made for other settings ({why}) and is not overwritten here: rebuild it with: "
+                f"{make_dataset_command(st)} plus this run's dataset.* overrides (or choose another dataset.out_dir)"
             )
-            counts = {d: sum(1 for e in episodes if e.difficulty == d) for d in DIFFICULTIES}
-            write_episode_file(
-                path, episodes, dataset=st["name"], root=root, split=split, fov=fov, hard_rule=st["hard_rule"],
-                seed=st["episode_seed"],
-                extra={"episodes_per_image": K, "pitch_bound": pitch_bound, "max_steps": int(max_steps),
-                       "fingerprint": efp, "difficulty_counts": counts},
-            )
-            summary.episode_counts[key] = counts
-            summary.episodes_reused[key] = False
-            say(f"wrote {path}")
+        episodes = make_static_episodes(splits[split], split, fov, K, st["episode_seed"], eb, ms, st["hard_rule"])
+        counts = {d: sum(1 for e in episodes if e.difficulty == d) for d in DIFFICULTIES}
+        write_episode_file(
+            path, episodes, dataset=st["name"], root=root, split=split, fov=fov, hard_rule=st["hard_rule"],
+            seed=st["episode_seed"],
+            extra={"episodes_per_image": K, "pitch_bound": eb, "max_steps": ms, "fingerprint": efp,
+                   "difficulty_counts": counts},
+        )
+        summary.episode_counts[key] = counts
+        summary.episodes_reused[key] = False
+        say(f"wrote {path}")
     return summary
-
-
-def ensure_dataset(
-    dataset_cfg: Any,
-    fovs: Iterable[float] | None = None,
-    *,
-    pitch_bound: int = 60,
-    max_steps: int = 5000,
-    progress: bool = True,
-    log: Callable[[str], None] | None = None,
-) -> Path:
-    """Make sure ``splits.json`` and the val/test episode files for ``fovs`` exist and match the config
-    (building them, and the synthetic images, when missing or stale); returns the absolute ``out_dir``.
-
-    Train / eval call this with ``cfg.dataset`` and ``[cfg.sim.fov]`` (and ``task.pitch_bound`` /
-    ``task.max_steps``), then read files with :func:`findview.dataset.episode_file` /
-    :func:`findview.dataset.load_episodes` / :func:`findview.dataset.load_split`.
-    """
-    return prepare_dataset(
-        dataset_cfg, fovs, pitch_bound=pitch_bound, max_steps=max_steps, force=False, progress=progress, log=log
-    ).out_dir

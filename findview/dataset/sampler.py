@@ -1,14 +1,16 @@
-"""Vectorised rejection sampling of FindView episodes (SPEC section 4).
+"""Vectorised rejection sampling of FindView episodes (docs/TASK.md, Difficulties).
 
 :func:`sample_rotations` draws candidate (init, target) pairs in numpy batches and keeps those meeting
 the difficulty rule (:mod:`findview.dataset.difficulty`); :class:`EpisodeSampler` wraps it for training
-(on-the-fly episodes, random images) and the static episode files use it directly.
+(on-the-fly episodes, random images, the curriculum's difficulty levels, an exactly resumable state)
+and the static episode files use it directly.
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -24,9 +26,23 @@ from findview.dataset.discovery import ImageEntry
 from findview.episode import DIFFICULTIES, Episode
 from findview.geometry import yaw_diff
 
-__all__ = ["EpisodeSampler", "SamplingError", "sample_rotations", "sample_pitch", "derive_seed", "DEFAULT_MAX_TRIES"]
+__all__ = [
+    "EpisodeSampler",
+    "SamplingError",
+    "sample_rotations",
+    "sample_pitch",
+    "derive_seed",
+    "check_level",
+    "check_mode",
+    "DEFAULT_MAX_TRIES",
+    "LEVEL_MODES",
+]
 
 DEFAULT_MAX_TRIES = 100_000
+LEVEL_MODES = ("unbounded", "bounded")
+"""Curriculum modes: ``unbounded`` level ``k`` is uniform over the first ``k`` difficulties (the paper's
+scheduler, easier episodes keep appearing); ``bounded`` level ``k`` is only the ``k``-th difficulty."""
+_STATE_VERSION = 1
 
 
 class SamplingError(RuntimeError):
@@ -114,6 +130,38 @@ def sample_rotations(
     return out
 
 
+def check_level(level: int) -> int:
+    """Return ``level`` as int or raise ``ValueError`` unless it is an integer in ``[1, 3]``."""
+    try:
+        ok = not isinstance(level, bool) and int(level) == level and 1 <= int(level) <= len(DIFFICULTIES)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"level must be an integer in [1, {len(DIFFICULTIES)}], got {level!r}")
+    return int(level)
+
+
+def check_mode(mode: str) -> str:
+    """Return ``mode`` or raise ``ValueError`` unless it is one of :data:`LEVEL_MODES`."""
+    if mode not in LEVEL_MODES:
+        raise ValueError(f"unknown curriculum mode {mode!r}; valid: {', '.join(LEVEL_MODES)}")
+    return mode
+
+
+def _plain(obj: Any) -> Any:
+    """``obj`` with numpy scalars / arrays turned into Python ints, floats and lists (for ``torch.save``
+    files loaded with ``weights_only=True`` and for JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
 class EpisodeSampler:
     """On-the-fly episodes: a random image and a rotation pair meeting the requested difficulty.
 
@@ -130,6 +178,9 @@ class EpisodeSampler:
 
     Episode ids count up from 0 in call order, so they are unique within a sampler and stable across
     runs; each episode's ``seed`` is :func:`derive_seed` of the sampler seed and the counter.
+
+    :meth:`state_dict` / :meth:`load_state_dict` save and restore everything the stream depends on, so a
+    sampler restored from a state continues with exactly the episodes the saved one would have drawn.
     """
 
     def __init__(
@@ -195,8 +246,65 @@ class EpisodeSampler:
             seed=derive_seed("sampler", self.seed, k),
         )
 
-    def sample_level(self, level: int) -> Episode:
-        """One episode whose difficulty is uniform over the first ``level`` (1..3) of easy, medium, hard."""
-        if isinstance(level, bool) or int(level) != level or not 1 <= int(level) <= len(DIFFICULTIES):
-            raise ValueError(f"level must be an integer in [1, {len(DIFFICULTIES)}], got {level!r}")
-        return self.sample(DIFFICULTIES[int(self._rng.integers(int(level)))])
+    def sample_level(self, level: int, mode: str = "unbounded") -> Episode:
+        """One episode of curriculum level ``level`` (1..3).
+
+        Args:
+            level: 1 = easy, 2 = medium, 3 = hard (docs/TASK.md, Difficulties).
+            mode: ``unbounded``: the difficulty is uniform over the first ``level`` of easy, medium, hard
+                (one draw from the sampler's generator); ``bounded``: exactly the ``level``-th difficulty.
+        """
+        level = check_level(level)
+        if check_mode(mode) == "bounded":
+            return self.sample(DIFFICULTIES[level - 1])
+        return self.sample(DIFFICULTIES[int(self._rng.integers(level))])
+
+    # ---------------------------------------------------------------------------------------------
+    def _settings(self) -> dict[str, Any]:
+        return {
+            "seed": self.seed, "fov": self.fov, "pitch_bound": self.pitch_bound, "max_steps": self.max_steps,
+            "hard_rule": self.hard_rule, "num_images": len(self.images), "id_prefix": self.id_prefix,
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the stream exactly: the generators' states, the pre-sampled
+        rotation pools, their read positions, the episode counter, and the settings (checked on load).
+
+        Plain Python values only (ints, floats, strings, lists, dicts): loadable with
+        ``torch.load(weights_only=True)`` and JSON-serialisable.
+        """
+        return {
+            "version": _STATE_VERSION,
+            "settings": self._settings(),
+            "count": int(self.count),
+            "rng": _plain(copy.deepcopy(self._rng.bit_generator.state)),
+            "rot_rng": {d: _plain(copy.deepcopy(g.bit_generator.state)) for d, g in self._rot_rng.items()},
+            "pool": {d: _plain(np.asarray(p, dtype=np.int64)) for d, p in self._pool.items()},
+            "pos": {d: int(p) for d, p in self._pos.items()},
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore a :meth:`state_dict` (of a sampler with the same settings).
+
+        Raises:
+            ValueError: the state is not a sampler state of this version, or was saved by a sampler with
+                other settings (seed, FoV, pitch bound, max steps, hard rule, number of images, id prefix);
+                the message names the first differing setting.
+        """
+        if not isinstance(state, Mapping) or state.get("version") != _STATE_VERSION or "rng" not in state:
+            raise ValueError(f"not an EpisodeSampler state (version {_STATE_VERSION}): keys {sorted(state)[:8]}"
+                             if isinstance(state, Mapping) else f"not an EpisodeSampler state: {type(state).__name__}")
+        mine = self._settings()
+        for key, value in dict(state.get("settings", {})).items():
+            if key in mine and mine[key] != value:
+                raise ValueError(
+                    f"the saved episode sampler state was made with {key}={value!r} but this sampler has "
+                    f"{key}={mine[key]!r}; it cannot continue that stream"
+                )
+        self._rng.bit_generator.state = copy.deepcopy(dict(state["rng"]))
+        for d in DIFFICULTIES:
+            self._rot_rng[d].bit_generator.state = copy.deepcopy(dict(state["rot_rng"][d]))
+            pool = np.asarray(state["pool"][d], dtype=np.int64)
+            self._pool[d] = pool.reshape(-1, 4) if pool.size else np.empty((0, 4), np.int64)
+            self._pos[d] = int(state["pos"][d])
+        self.count = int(state["count"])

@@ -1,6 +1,6 @@
 """Deterministic train/val/test splits per sub-category, stored as ``<out_dir>/splits.json``.
 
-The rule (SPEC section 5), identical on every machine:
+The rule (docs/TASK.md, Datasets and splits), identical on every machine:
 
 1. Images are grouped by label (sub-category); labels are processed in sorted order.
 2. Within a label, images are ordered by ``sha256("<seed>/<label>/<path relative to root>")`` -- a

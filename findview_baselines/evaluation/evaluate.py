@@ -56,7 +56,7 @@ def make_dataset_command(cfg: DictConfig, dataset_choice: str | None = None, ove
     """The ``tools/make_dataset.py`` command that writes the episode file this evaluation needs.
 
     It repeats the ``dataset`` choice and the eval command's overrides that shape the episode files
-    (``dataset.*``, ``sim`` / ``sim.fov``, ``task.pitch_bound``, ``task.max_steps``), and adds
+    (``dataset.*``, ``sim`` / ``sim.fov``; ``task.pitch_bound`` as ``dataset.episode_pitch_bound``), and adds
     ``sim.fov`` / ``dataset.splits_to_make`` when the data set config would not make this FoV / split.
     """
     name = dataset_choice or str(_get(cfg, "dataset.name", "<name>"))
@@ -64,9 +64,11 @@ def make_dataset_command(cfg: DictConfig, dataset_choice: str | None = None, ove
     given: set[str] = set()
     for o in overrides:
         key = o.split("=", 1)[0].lstrip("+~")
-        if key.startswith("dataset.") or key in ("sim", "sim.fov", "task.pitch_bound", "task.max_steps"):
+        if key.startswith("dataset.") or key in ("sim", "sim.fov"):
             parts.append(o)
             given.add(key)
+        elif key == "task.pitch_bound" and "dataset.episode_pitch_bound" not in given:
+            parts.append(f"dataset.episode_pitch_bound={o.split('=', 1)[1]}")
     if "dataset.root" not in given and _get(cfg, "dataset.kind") != "synthetic" and _get(cfg, "dataset.root") in (None, "", "???"):
         parts.append("dataset.root=<folder with the panoramas>")
     fov = float(_get(cfg, "sim.fov", 90))
@@ -121,8 +123,7 @@ def resolve_episodes(
                 out_dir = str(
                     ensure_dataset(
                         cfg.dataset, [fov], pitch_bound=int(_get(cfg, "task.pitch_bound", 60)),
-                        max_steps=int(_get(cfg, "task.max_steps", 5000)), progress=bool(_get(cfg, "progress", True)),
-                        log=log.info,
+                        progress=bool(_get(cfg, "progress", True)), log=log.info,
                     )
                 )
             except (DatasetError, SamplingError) as err:  # a message for the user

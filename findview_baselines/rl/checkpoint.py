@@ -15,7 +15,7 @@ plain Python values (dicts, lists, tuples, str, int, float, bool, None), so it l
       "trainer": {...} | None,                                     # resume state (latest.pth only)
     }
 
-``trainer`` (see :meth:`findview_baselines.rl.trainer.PPOTrainer.state_dict`) carries the optimizer,
+``trainer`` (see :meth:`findview_baselines.rl.ppo_trainer.PPOTrainer.state_dict`) carries the optimizer,
 lr / clip, the difficulty scheduler, the environment (episodes, rotations, episode source and sampler
 RNG), the rollout storage's initial observation / hidden state / masks and every RNG (torch CPU + CUDA,
 numpy, Python ``random``, the mini-batch shuffle generator). ``best.pth`` leaves it out (``None``): it is
@@ -46,7 +46,6 @@ __all__ = [
     "check_writable",
     "capture_rng_state",
     "restore_rng_state",
-    "ResumableSampler",
 ]
 
 
@@ -145,71 +144,3 @@ def restore_rng_state(state: Mapping[str, Any]) -> None:
     )
     py_state = state["python"]
     random.setstate((int(py_state["version"]), tuple(int(x) for x in py_state["state"]), py_state["gauss_next"]))
-
-
-# --------------------------------------------------------------------------------------------------
-# Episode sampler state
-# --------------------------------------------------------------------------------------------------
-
-
-class ResumableSampler:
-    """Wraps a ``findview.dataset.EpisodeSampler`` so that its stream of episodes can be saved and resumed.
-
-    Uses the sampler's own ``state_dict()`` / ``load_state_dict()`` when it has them. Otherwise it saves
-    the sampler's internals (numpy generators ``_rng`` / ``_rot_rng``, the pre-sampled rotation pools
-    ``_pool`` / ``_pos`` and the episode ``count``), converted to tensors / plain values; any other sampler
-    without ``state_dict`` cannot be resumed exactly and raises ``TypeError`` when saved.
-
-    Everything else (``sample``, ``sample_level``, attributes) is forwarded to the wrapped sampler.
-    """
-
-    _INTERNALS = ("_rng", "_rot_rng", "_pool", "_pos", "count")
-
-    def __init__(self, sampler: Any) -> None:
-        self.sampler = sampler
-
-    def __getattr__(self, name: str) -> Any:
-        # only called for attributes not found on the wrapper itself
-        if name == "sampler":  # during unpickling / before __init__
-            raise AttributeError(name)
-        return getattr(self.sampler, name)
-
-    def sample_level(self, level: int) -> Any:
-        return self.sampler.sample_level(level)
-
-    def sample(self, difficulty: str) -> Any:
-        return self.sampler.sample(difficulty)
-
-    def state_dict(self) -> dict[str, Any]:
-        """The wrapped sampler's RNG / buffer state (loadable with ``weights_only=True``)."""
-        own = getattr(self.sampler, "state_dict", None)
-        if callable(own):
-            return {"kind": "native", "state": own()}
-        if not all(hasattr(self.sampler, name) for name in self._INTERNALS):
-            raise TypeError(
-                f"{type(self.sampler).__name__} has no state_dict(); its episode stream cannot be resumed exactly"
-            )
-        s = self.sampler
-        return {
-            "kind": "internals",
-            "rng": s._rng.bit_generator.state,
-            "rot_rng": {d: g.bit_generator.state for d, g in s._rot_rng.items()},
-            "pool": {d: torch.from_numpy(np.ascontiguousarray(p, dtype=np.int64)) for d, p in s._pool.items()},
-            "pos": {d: int(p) for d, p in s._pos.items()},
-            "count": int(s.count),
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore :meth:`state_dict` into the wrapped sampler."""
-        if state["kind"] == "native":
-            self.sampler.load_state_dict(state["state"])
-            return
-        s = self.sampler
-        if not all(hasattr(s, name) for name in self._INTERNALS):
-            raise TypeError(f"cannot restore the saved sampler state into {type(s).__name__}")
-        s._rng.bit_generator.state = state["rng"]
-        for d, g_state in state["rot_rng"].items():
-            s._rot_rng[d].bit_generator.state = g_state
-        s._pool = {d: p.numpy().astype(np.int64) for d, p in state["pool"].items()}
-        s._pos = {d: int(p) for d, p in state["pos"].items()}
-        s.count = int(state["count"])

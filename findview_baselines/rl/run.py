@@ -416,10 +416,7 @@ def _build_data(conf: Mapping[str, Any], dataset_cfg: Any, progress: bool) -> tu
 
     fov = float(conf["sim"]["fov"])
     task = conf["task"]
-    out_dir = ensure_dataset(
-        dataset_cfg, [fov], pitch_bound=int(task["pitch_bound"]), max_steps=int(task["max_steps"]),
-        progress=progress, log=log.info,
-    )
+    out_dir = ensure_dataset(dataset_cfg, [fov], pitch_bound=int(task["pitch_bound"]), progress=progress, log=log.info)
     train_images = load_split(out_dir, "train")
     if not train_images:
         raise UserError(f"the train split of dataset {conf['dataset'].get('name')!r} in {out_dir} is empty")
