@@ -26,7 +26,6 @@ A tool is::
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import sys
 from collections.abc import Callable, Sequence
