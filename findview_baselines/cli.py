@@ -26,6 +26,7 @@ A tool is::
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import sys
 from collections.abc import Callable, Sequence
@@ -68,8 +69,15 @@ class Interrupted(Exception):
         self.signum = int(signum)
 
 
-#: exceptions printed as one line with exit status 2 (``ValueError`` covers ``ConfigError``)
-USER_ERRORS: tuple[type[BaseException], ...] = (UserError, ConfigError, ValueError, FileNotFoundError, PermissionError)
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from findview.dataset.sampler import SamplingError
+
+    return (UserError, ConfigError, ValueError, FileNotFoundError, PermissionError, SamplingError)
+
+
+#: exceptions printed as one line with exit status 2 (``ValueError`` covers ``ConfigError`` and the data
+#: set errors); set ``FINDVIEW_DEBUG=1`` to get their traceback instead
+USER_ERRORS: tuple[type[BaseException], ...] = _user_errors()
 
 
 @dataclass
@@ -316,6 +324,8 @@ def run_tool(
             _remove_if_empty_run(ctx.run_dir)
             sys.exit(130)
         except USER_ERRORS as err:
+            if os.environ.get("FINDVIEW_DEBUG"):
+                raise
             logging.shutdown()
             _remove_if_empty_run(ctx.run_dir)
             _fail(tool, str(err))

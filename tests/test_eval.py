@@ -324,14 +324,14 @@ _SIM = []
 
 
 def _env(episodes, num_envs, max_steps=5000):
-    """An env over ``episodes``; one simulator (and its per-pitch grids) is shared by every test env."""
-    from findview.sim import PanoramaBank, Simulator
-    from findview.task import FindViewEnv, StaticEpisodeSource
+    """An env over ``episodes`` (findview.build, like the tools); one simulator (and its per-pitch grids)
+    is shared by every test env."""
+    from findview.build import build_simulator, build_static_env
 
+    sim_cfg = {"fov": 90, "height": 64, "width": 64, "device": "cpu", "bank_mb": 64, "prefetch_workers": 0}
     if not _SIM:
-        bank = PanoramaBank("cpu", 64, prefetch_workers=0, min_slots=8)
-        _SIM.append(Simulator(bank, fov=90, height=64, width=64, pitch_bound=60))
-    return FindViewEnv(_SIM[0], StaticEpisodeSource(episodes), num_envs, max_steps=max_steps, prefetch=0)
+        _SIM.append(build_simulator(sim_cfg, 60, [e.image for e in episodes], 8))
+    return build_static_env(sim_cfg, {"max_steps": max_steps, "pitch_bound": 60}, episodes, num_envs, simulator=_SIM[0])
 
 
 def test_harness_counts_and_batch_invariance(folder_ds):
@@ -351,6 +351,41 @@ def test_harness_counts_and_batch_invariance(folder_ds):
     env = _env(episodes, 4)
     records, rt = run_episodes(env, make_agent("oracle", {}, 4), progress=False, max_episodes=5)
     assert [r["episode_id"] for r in records] == [e.episode_id for e in episodes[:5]]
+
+
+def test_progress_bar_moves_before_the_first_episode_ends(folder_ds):
+    """A run whose episodes all go to T shows growing step counts while the episode count is still 0."""
+    import io
+
+    from findview_baselines.agents import make_agent
+    from findview_baselines.evaluation import run_episodes
+
+    episodes = _episodes(folder_ds)[:2]
+    env = _env(episodes, 2, max_steps=400)
+    stream = io.StringIO()
+    clock = iter(range(0, 10**6, 1))
+
+    class SlowRandom:  # never stops; each decision "takes" 0.3 s of a fake clock
+        name = "walker"
+
+        def reset(self, env_ids, eps):
+            pass
+
+        def act(self, obs):
+            return torch.full((2,), 2, dtype=torch.long)  # LEFT forever: episodes end only at T
+
+    import findview_baselines.evaluation.harness as harness
+
+    real = harness.time.perf_counter
+    harness.time.perf_counter = lambda: next(clock) * 0.3  # type: ignore[assignment]
+    try:
+        records, rt = run_episodes(env, SlowRandom(), progress=True, progress_stream=stream)
+    finally:
+        harness.time.perf_counter = real  # type: ignore[assignment]
+    assert len(records) == 2 and all(not r["called_stop"] and r["steps"] == 400 for r in records)
+    lines = [s for s in stream.getvalue().replace("\r", "\n").splitlines() if " 0/2 " in s and "steps=" in s]
+    counts = [int(s.split("steps=")[1].split()[0]) for s in lines]
+    assert len(counts) >= 3 and counts == sorted(counts) and counts[-1] > counts[0] > 0
 
 
 def _tiny_checkpoint(path: Path, height: int = 64, width: int = 64) -> Path:

@@ -12,43 +12,30 @@ Writes ``<out_dir>/splits.json`` and ``<out_dir>/episodes/<split>_fov<F>.json`` 
 summary. The episodes depend on the ``dataset`` config only (``dataset.episode_seed``,
 ``episodes_per_image``, ``hard_rule``, ``episode_pitch_bound``, ``episode_max_steps``), never on ``task.*``
 settings (docs/TASK.md, Datasets and splits). Known problems (bad image, missing folder, impossible
-difficulty...) end the run with a one-line ``error: ...`` on stderr and a non-zero exit status.
+difficulty...) end the run with a one-line ``make_dataset: error: ...`` on stderr and exit status 2.
 """
 
 from __future__ import annotations
 
-import sys
-
-import hydra
 from omegaconf import DictConfig
-from omegaconf.errors import OmegaConfBaseException
 
-from findview.dataset import SamplingError, prepare_dataset
-from findview_baselines.config import register_configs
+from findview_baselines.cli import ToolContext, UserError, run_tool
 
 
-def _one_line(e: BaseException) -> str:
-    return " ".join(str(e).split())
+def main(cfg: DictConfig, ctx: ToolContext) -> None:
+    from findview.dataset import SamplingError, prepare_dataset
 
-
-@hydra.main(version_base="1.3", config_path="../configs", config_name="make_dataset")
-def main(cfg: DictConfig) -> None:
+    fovs = [float(f) for f in cfg.dataset.episode_fovs]
+    if float(cfg.sim.fov) not in fovs:
+        fovs.append(float(cfg.sim.fov))
     try:
-        fovs = [float(f) for f in cfg.dataset.episode_fovs]
-        if float(cfg.sim.fov) not in fovs:
-            fovs.append(float(cfg.sim.fov))
         summary = prepare_dataset(
-            cfg.dataset,
-            fovs,
-            force=bool(cfg.force),
-            progress=bool(cfg.progress),
-            log=lambda msg: print(msg, flush=True),
+            cfg.dataset, fovs, force=bool(cfg.force), progress=bool(cfg.progress), log=lambda msg: print(msg, flush=True)
         )
-    except (ValueError, OSError, SamplingError, OmegaConfBaseException) as e:
-        sys.exit(f"error: {_one_line(e)}")
+    except (SamplingError, OSError) as err:
+        raise UserError(str(err)) from err
     print(summary.format(), flush=True)
 
 
 if __name__ == "__main__":
-    register_configs()  # the typed schemas named in configs/make_dataset.yaml
-    main()
+    run_tool("make_dataset", main)

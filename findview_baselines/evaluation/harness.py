@@ -127,6 +127,7 @@ def run_episodes(
     max_episodes: int | None = None,
     callbacks: Sequence[StepCallback] = (),
     desc: str | None = None,
+    progress_stream: Any = None,
 ) -> tuple[list[dict[str, Any]], Runtime]:
     """Play every episode of ``env``'s source with ``agent``.
 
@@ -137,7 +138,9 @@ def run_episodes(
         agent: a batched agent (``reset(env_ids, episodes)``, ``act(obs) -> (N,) long``); ``reset`` is
             called for the slots whose ``env.new_episode`` is set, before ``act`` sees their first
             observation, and with ``None`` episodes for slots that go idle (their source ran out).
-        progress: show a tqdm progress bar over episodes (on stderr).
+        progress: show a tqdm progress bar (on stderr, or ``progress_stream``): finished episodes out of the
+            total, with the environment steps done so far and their rate, refreshed at least every
+            0.5 s, so that long episodes (up to T = 5000 steps) show movement before the first one ends.
         max_episodes: play only the first ``max_episodes`` episodes. A static source that has not
             started yet is truncated (so the same episodes run whatever ``num_envs`` is); for other
             sources the run stops after ``max_episodes`` finished episodes.
@@ -165,8 +168,12 @@ def run_episodes(
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=total, desc=desc or getattr(agent, "name", "eval"), unit="ep", dynamic_ncols=True, leave=True)
+        bar = tqdm(
+            total=total, desc=desc or getattr(agent, "name", "eval"), unit="ep", dynamic_ncols=True, leave=True,
+            file=progress_stream, mininterval=0.5,
+        )
     t_start = time.perf_counter()
+    t_shown = t_start
     try:
         obs = env.reset()
         while True:
@@ -199,8 +206,14 @@ def run_episodes(
             finished = [info for info in infos if info is not None]
             if finished:
                 records.extend(finished)
-                if bar is not None:
+            if bar is not None:
+                now = time.perf_counter()
+                if finished or now - t_shown >= 0.5:
+                    t_shown = now
+                    rate = runtime.env_steps / max(now - t_start, 1e-9)
+                    bar.set_postfix_str(f"steps={runtime.env_steps} ({rate:.0f}/s)", refresh=False)
                     bar.update(len(finished))
+                    bar.refresh()
     finally:
         if bar is not None:
             bar.close()
