@@ -16,10 +16,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+from findview.task.rewards import RewardConfig
+
 __all__ = [
     "ConfigError",
     "SimConfig",
-    "RewardSchema",
+    "RewardConfig",
     "TaskConfig",
     "DatasetConfig",
     "CorruptionConfig",
@@ -41,7 +43,6 @@ def check(ok: bool, key: str, value: Any, expected: str) -> None:
 
 SIM_MODES = ("bilinear", "nearest", "bicubic")
 SIM_BACKENDS = ("auto", "opencv", "torch")
-REWARD_NAMES = ("paper", "bell", "basic")
 DATASET_KINDS = ("synthetic", "sun360", "indoor360", "folder")
 HARD_RULES = ("or", "and")
 
@@ -83,29 +84,6 @@ class SimConfig:
 
 
 @dataclass
-class RewardSchema:
-    """PPO rewards (``task.reward``); the three variants are described in docs/TASK.md, section Rewards."""
-
-    name: str = "paper"
-    """paper | bell | basic."""
-    alpha: float = 100.0
-    """Success scale: alpha / (eps + beta) on stop, -alpha on a forced stop at T."""
-    beta: float = 10.0
-    """Success offset, degrees (> 0)."""
-    dist_coef: float = 0.1
-    """Warmer-colder shaping per step: dist_coef * (eps_{t-1} - eps_t), eps in degrees."""
-    slack: float = -0.01
-    """Reward added at every step."""
-    bell_sigma: float = 5.0
-    """``bell`` only: width of the stop reward's bell curve, degrees (> 0)."""
-
-    def __post_init__(self) -> None:
-        check(self.name in REWARD_NAMES, "task.reward.name", self.name, " | ".join(REWARD_NAMES))
-        check(self.beta > 0, "task.reward.beta", self.beta, "a positive number of degrees")
-        check(self.bell_sigma > 0, "task.reward.bell_sigma", self.bell_sigma, "a positive number of degrees")
-
-
-@dataclass
 class TaskConfig:
     """Episode rules (``task`` group; docs/TASK.md, section Episodes)."""
 
@@ -115,7 +93,7 @@ class TaskConfig:
     """Pitch is clamped to [-pitch_bound, pitch_bound], degrees (<= 90)."""
     step_deg: int = 1
     """Degrees per move."""
-    reward: RewardSchema = field(default_factory=RewardSchema)
+    reward: RewardConfig = field(default_factory=RewardConfig)
     """Rewards for reinforcement learning."""
 
     def __post_init__(self) -> None:

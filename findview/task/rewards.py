@@ -1,4 +1,4 @@
-"""Rewards of SPEC section 7 (``paper``) and two variants, batched.
+"""Rewards of docs/TASK.md, section Rewards (``paper``) and two variants, batched.
 
 ``paper``: ``r_t = r_success + r_dist + r_slack`` with ``r_success = alpha / (eps + beta)`` on stop,
 ``-alpha`` on a forced stop at T, else 0; ``r_dist = dist_coef * (eps_{t-1} - eps_t)``;
@@ -21,20 +21,28 @@ REWARD_NAMES = ("paper", "bell", "basic")
 
 @dataclass
 class RewardConfig:
+    """Reward settings (the ``task.reward`` config section; docs/TASK.md, section Rewards)."""
+
     name: str = "paper"
+    """paper | bell | basic."""
     alpha: float = 100.0
+    """Success scale: alpha / (eps + beta) on stop, -alpha on a forced stop at T."""
     beta: float = 10.0
+    """Success offset, degrees (> 0)."""
     dist_coef: float = 0.1
+    """Warmer-colder shaping per step: dist_coef * (eps_{t-1} - eps_t), eps in degrees."""
     slack: float = -0.01
+    """Reward added at every step."""
     bell_sigma: float = 5.0
+    """``bell`` only: width of the stop reward's bell curve, degrees (> 0)."""
 
     def __post_init__(self) -> None:
         if self.name not in REWARD_NAMES:
-            raise ValueError(f"task.reward.name must be one of {REWARD_NAMES}, got {self.name!r}")
+            raise ValueError(f"task.reward.name={self.name!r}: expected {' | '.join(REWARD_NAMES)}")
         if self.beta <= 0:
-            raise ValueError(f"task.reward.beta must be > 0, got {self.beta}")
+            raise ValueError(f"task.reward.beta={self.beta!r}: expected a positive number of degrees")
         if self.bell_sigma <= 0:
-            raise ValueError(f"task.reward.bell_sigma must be > 0, got {self.bell_sigma}")
+            raise ValueError(f"task.reward.bell_sigma={self.bell_sigma!r}: expected a positive number of degrees")
 
 
 def compute_reward(
