@@ -187,14 +187,18 @@ class CorruptionConfig:
         )
         check(ok, "corruption.severity", sev, "an integer 1-5 or a range [low, high] within 1-5")
         check(self.ramp_updates >= 0, "corruption.ramp_updates", self.ramp_updates, "0 or more updates")
-        try:  # TEMP guard until findview.corruptions lands
-            from findview.corruptions import resolve_names  # deferred: keeps this module light
-        except ImportError:
-            return
+        from findview.corruptions import check_frost_textures, resolve_names  # deferred: keeps imports light
+
+        name = list(self.name) if isinstance(self.name, (list, tuple)) else self.name
         try:
-            resolve_names(self.name)
+            names = resolve_names(name)
         except ValueError as err:
-            raise ConfigError(f"corruption.name={self.name!r}: {err}") from None
+            raise ConfigError(f"corruption.name={name!r}: {err}") from None
+        if "frost" in names:
+            try:
+                check_frost_textures()
+            except FileNotFoundError as err:
+                raise ConfigError(f"corruption.name={name!r}: {err}") from None
 
 
 def register_core_configs() -> None:

@@ -280,18 +280,6 @@ def _remove_if_empty_run(run_dir: Path) -> None:
             pass
 
 
-def _configure_threads(threads: int | None) -> None:
-    try:  # TEMP guard until findview.runtime lands
-        from findview.runtime import configure_threads
-    except ImportError:
-        import torch
-
-        if threads:
-            torch.set_num_threads(int(threads))
-        return
-    configure_threads(threads)
-
-
 def run_tool(
     config_name: str, main: Callable[[DictConfig, ToolContext], Any], tool: str | None = None, check_run_dir: bool = False
 ) -> None:
@@ -299,6 +287,7 @@ def run_tool(
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
+    from findview.runtime import configure_threads
     from findview_baselines.config import register_configs
 
     tool = tool or config_name
@@ -313,7 +302,7 @@ def run_tool(
         threads = OmegaConf.select(cfg, "torch_threads", default=None)
         if threads is None:
             threads = OmegaConf.select(cfg, "trainer.torch_threads", default=None)
-        _configure_threads(threads)
+        configure_threads(threads)
         try:
             main(cfg, ctx)
         except Interrupted as err:

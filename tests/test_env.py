@@ -1,4 +1,4 @@
-"""The batched FindView environment: rules of SPEC section 2, rewards of section 7, resets, state."""
+"""The batched FindView environment: rules and rewards of docs/TASK.md (sections Episodes, Rewards), resets, state."""
 
 from __future__ import annotations
 

@@ -33,17 +33,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 import torch
-from omegaconf import OmegaConf
 
 from findview.dataset import EpisodeSampler, ImageEntry
 from findview.geometry import l1_distance
 from findview.metrics import aggregate
-from findview.sim import PanoramaBank, Simulator
-from findview.task import FindViewEnv, RewardConfig, StaticEpisodeSource
+from findview.task import FindViewEnv
 from findview_baselines.rl.policy import build_policy
-from findview_baselines.rl.trainer import evaluate, load_policy, train
+from findview_baselines.agents.ppo_agent import PPOAgent
+from findview_baselines.cli import compose_config
+from findview_baselines.evaluation.harness import run_episodes
+from findview_baselines.rl.run import load_policy, train
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 48
@@ -61,7 +61,7 @@ LEARNING_SETUP = {
     "trainer.val_interval": 0, "trainer.val_at_end": False, "trainer.log_interval": 50,
     "trainer.checkpoint_interval": 0, "trainer.progress": False,
     "scheduler.num_levels": 1,  # easy episodes only
-    "dataset.splits_to_make": [],  # no static val/test files needed
+    "dataset.splits_to_make": "[]",  # no static val/test files needed
 }
 
 
@@ -100,16 +100,9 @@ def test_ppo_learns_to_find_the_view(tmp_path: Path) -> None:
     for i in range(10):
         cv2.imwrite(str(root / f"pano_{i:03d}.png"), colour_wheel_panorama(200 + i))
 
-    cfg = OmegaConf.load(REPO / "configs" / "train.yaml")
-    for key in ("defaults", "hydra"):
-        cfg.pop(key)
-    cfg.dataset = OmegaConf.load(REPO / "configs" / "dataset" / "folder.yaml")
-    cfg.dataset.update(name="colour_wheel", root=str(root), out_dir=str(tmp_path / "dataset"))
-    cfg.sim = OmegaConf.load(REPO / "configs" / "sim" / "fov90.yaml")
-    cfg.task = OmegaConf.load(REPO / "configs" / "task" / "default.yaml")
-    cfg.agent = OmegaConf.load(REPO / "configs" / "agent" / "ppo.yaml")
-    for key, value in LEARNING_SETUP.items():
-        OmegaConf.update(cfg, key, value, force_add=True)
+    setup = {"dataset": "folder", "dataset.name": "colour_wheel", "dataset.root": str(root),
+             "dataset.out_dir": str(tmp_path / "dataset"), "dataset.episode_pitch_bound": PITCH_BOUND, **LEARNING_SETUP}
+    cfg = compose_config("train", [f"{k}={v}" for k, v in setup.items()])
 
     start = time.perf_counter()
     result = train(cfg, tmp_path / "run")
@@ -123,16 +116,14 @@ def test_ppo_learns_to_find_the_view(tmp_path: Path) -> None:
     stop_at_once_eps = float(np.mean([l1_distance(e.init_pitch, e.init_yaw, e.target_pitch, e.target_yaw) for e in episodes]))
 
     def make_env() -> FindViewEnv:
-        bank = PanoramaBank("cpu", prefetch_workers=0, max_panoramas=len(images), min_slots=16)
-        sim = Simulator(bank, fov=90, height=SIZE, width=SIZE, pitch_bound=PITCH_BOUND)
-        reward = RewardConfig(**OmegaConf.to_container(cfg.task.reward))
-        return FindViewEnv(
-            sim, StaticEpisodeSource(episodes), 16, max_steps=MAX_STEPS, pitch_bound=PITCH_BOUND, reward=reward
-        )
+        from findview.build import build_static_env
+
+        sim_cfg = {"fov": 90, "height": SIZE, "width": SIZE, "device": "cpu", "prefetch_workers": 0}
+        return build_static_env(sim_cfg, cfg.task, episodes, 16, max_steps=MAX_STEPS)
 
     policy = build_policy(cfg.agent, SIZE, SIZE)
     load_policy(result.latest, policy)
-    trained = aggregate(evaluate(make_env(), policy, deterministic=True))
+    trained = aggregate(run_episodes(make_env(), PPOAgent(policy, 16), progress=False)[0])
     random_agent = aggregate(run_random_agent(make_env()))
     print(
         f"\ntrained {result.updates} updates ({result.env_steps} steps, {train_seconds:.0f}s, "

@@ -59,7 +59,7 @@ def one_image_ds(tmp_path_factory, small_pano) -> dict[str, Path]:
 
 @pytest.mark.parametrize("pitch,yaw", [(0, 0), (35, -170), (-60, 95), (60, 180)])
 def test_outline_follows_the_renderer_mapping(pitch, yaw):
-    """Projected pixel centres equal the simulator's sample points (same SPEC section 1 mapping)."""
+    """Projected pixel centres equal the simulator's sample points (same camera mapping, docs/TASK.md)."""
     from findview.sim.equi2pers import pitch_grid
     from findview_baselines.evaluation.viz import project_view_points
 

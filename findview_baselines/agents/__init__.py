@@ -4,7 +4,7 @@
 
 - ``random``: uniform actions (seeded);
 - ``oracle``: shortest path from the episode's privileged rotations (eps 0, SPL 1);
-- ``orb`` / ``sift``: the paper's rule-based feature-matching agents (SPEC section 9);
+- ``orb`` / ``sift``: the paper's rule-based feature-matching agents (docs/TASK.md, section Rule-based agents);
 - ``rotation``: relative-rotation estimation from feature matches + straight walk (beyond the paper).
 
 More agents (e.g. a learned policy) can be added with :func:`register_agent`.

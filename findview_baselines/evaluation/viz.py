@@ -1,6 +1,6 @@
 """Pictures of episodes: view outlines on the panorama, the paper's Figure 2 layout, MP4 replays.
 
-Where a view lies on the panorama is found by projecting its outline with the SPEC section 1 mapping
+Where a view lies on the panorama is found by projecting its outline with the camera mapping of docs/TASK.md (section World and camera)
 (the one :func:`findview.sim.equi2pers` renders with): an image point ``(x, y)`` (continuous pixel
 coordinates, pixel ``(i, j)`` covers ``[i, i+1) x [j, j+1)``, so its centre is ``(i + 0.5, j + 0.5)``)
 has the camera ray ``((x - W/2) / f', -(y - H/2) / f', 1)``, rotated by pitch about x then yaw about y,
@@ -224,7 +224,7 @@ def episode_figure(
 def replay_rotations(
     init: tuple[int, int], actions: Iterable[int], pitch_bound: int = 60, step_deg: int = 1
 ) -> list[tuple[int, int]]:
-    """Rotations along an action sequence with the environment's rules (SPEC section 2).
+    """Rotations along an action sequence with the environment's rules (docs/TASK.md, section Episodes).
 
     Returns ``len(actions) + 1`` rotations: the start, then the rotation after each action.
     """

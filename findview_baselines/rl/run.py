@@ -405,6 +405,22 @@ class CheckpointCallback(Callback):
             ctx.save_latest()
 
 
+class SeverityRamp(Callback):
+    """``corruption.ramp_updates > 0``: the highest target-corruption severity of new training episodes
+    rises linearly from ``low`` to ``high`` over that many updates (fine-tuning with corruptions as
+    augmentation; validation keeps the full range)."""
+
+    def __init__(self, transform: Any, ramp_updates: int) -> None:
+        self.transform, self.ramp_updates = transform, max(1, int(ramp_updates))
+
+    def set_for(self, update: int) -> None:
+        low, high = self.transform.low, self.transform.high
+        self.transform.max_severity = low + int((high - low) * min(1.0, update / self.ramp_updates))
+
+    def on_update(self, ctx: RunContext, stats: Mapping[str, Any]) -> None:
+        self.set_for(ctx.algo.update)
+
+
 # ------------------------------------------------------------------------------------------------
 # Building a run
 # ------------------------------------------------------------------------------------------------
@@ -524,6 +540,10 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
     policy = build_policy(agent_cfg, int(sim_cfg["height"]), int(sim_cfg["width"])).to(device)
     algo = make_algorithm(conf, env, policy, scheduler, env.source)
     ctx = RunContext(algo, conf, run_dir, num_updates)
+    ramp = None
+    if env.target_transform is not None and int((conf.get("corruption") or {}).get("ramp_updates", 0)) > 0:
+        ramp = SeverityRamp(env.target_transform, int(conf["corruption"]["ramp_updates"]))
+        ramp.set_for(int(resume_state["update"]) if resume_state is not None else 0)  # before any target is made
 
     if resume_state is not None:
         try:
@@ -564,6 +584,8 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
         callbacks.append(ValidationCallback(val_env, agent, int(t.get("val_interval", 0)),
                                             bool(t.get("val_at_end", True)), tb))
     callbacks.append(CheckpointCallback(int(t.get("checkpoint_interval", 100))))
+    if ramp is not None:
+        callbacks.insert(0, ramp)
 
     session_start, t_start = algo.update, time.perf_counter()
     try:

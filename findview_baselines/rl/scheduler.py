@@ -1,4 +1,4 @@
-"""Difficulty scheduler (paper section 4.4, SPEC sections 4 and 8).
+"""Difficulty scheduler (paper section 4.4; docs/TASK.md, sections Difficulties and PPO baseline).
 
 Training is split into ``num_levels`` equal phases of updates; phase ``k`` (1-based) is level ``k``:
 
