@@ -21,7 +21,7 @@ import torch
 from findview.episode import Episode
 from findview.imageio import load_panorama
 from findview.sim import PanoramaBank, Simulator, equi2pers
-from findview.task import FindViewEnv, StaticEpisodeSource
+from findview.build import build_static_env
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sun360_mini"
 
@@ -107,8 +107,8 @@ def main() -> None:
         for i in range(4000)
     ]
     for device in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
-        bank = PanoramaBank(device, 1024, min_slots=n_envs, max_panoramas=len(files))
-        env = FindViewEnv(Simulator(bank, 90, 256, 256), StaticEpisodeSource(episodes), n_envs, max_steps=5000)
+        sim_cfg = {"fov": 90, "height": 256, "width": 256, "device": device, "bank_mb": 1024}
+        env = build_static_env(sim_cfg, {"max_steps": 5000}, episodes, n_envs)
         env.reset()
         gen = torch.Generator().manual_seed(0)
         acts = [torch.randint(0, 4, (n_envs,), generator=gen).to(device) for _ in range(64)]

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -31,16 +30,14 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+from findview.build import build_sampled_env
+from findview.dataset import EpisodeSampler, ImageEntry
+from findview.sim import resolve_device
+from findview_baselines.rl.policy import Policy
+from findview_baselines.rl.ppo import PPOConfig
+from findview_baselines.rl.ppo_trainer import PPOTrainer, no_distribution_validation
 
-from findview.dataset import EpisodeSampler, ImageEntry  # noqa: E402
-from findview.sim import PanoramaBank, Simulator, resolve_device  # noqa: E402
-from findview.task import FindViewEnv, SampledEpisodeSource  # noqa: E402
-from findview_baselines.rl.policy import Policy  # noqa: E402
-from findview_baselines.rl.ppo import PPOConfig  # noqa: E402
-from findview_baselines.rl.ppo_trainer import PPOTrainer, no_distribution_validation  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 
 @dataclass
@@ -90,10 +87,10 @@ def find_panoramas(tmp: Path) -> list[ImageEntry]:
 def run_setting(setting: Setting, images: list[ImageEntry], device: torch.device, updates: int) -> Result:
     """One warm-up update, then ``updates`` timed ones; returns steps/s and seconds per update per phase."""
     torch.manual_seed(0)
-    bank = PanoramaBank(device, budget_mb=4096, max_panoramas=len(images), min_slots=setting.num_envs)
-    sim = Simulator(bank, fov=90, height=setting.size, width=setting.size)
+    sim_cfg = {"fov": 90, "height": setting.size, "width": setting.size, "device": str(device), "bank_mb": 4096}
     sampler = EpisodeSampler(images, 90, seed=0)
-    env = FindViewEnv(sim, SampledEpisodeSource(sampler, level=3), setting.num_envs)
+    env = build_sampled_env(sim_cfg, {}, sampler, setting.num_envs)
+    env.source.level = 3
     policy = Policy(setting.size, setting.size, "early_fusion", 512).to(device)
     cfg = PPOConfig(rollout_steps=setting.rollout_steps, num_mini_batches=setting.num_mini_batches)
     trainer = PPOTrainer(env, policy, cfg, total_updates=1_000_000, seed=0)
