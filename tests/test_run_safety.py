@@ -171,3 +171,29 @@ def test_val_eps_in_the_checkpoint_equals_tools_eval(reference_run: Path, panora
         assert summary[difficulty]["spl"] == pytest.approx(stored[difficulty]["spl"], abs=1e-9), difficulty
     config = (stamp / ".hydra" / "config.yaml").read_text()
     assert "name: ppo" in config and f"height: {SIZE}" in config and "name: orb" not in config
+
+
+def test_user_errors_are_one_line_exit_2_and_leave_no_empty_run_folder(make_cfg, tmp_path: Path) -> None:
+    """A file that is not a checkpoint (eval) and an unreadable resume state (train): one line naming the
+    file and the way out, exit 2, and no output folder left behind by the failed eval."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    bogus = tmp_path / "not_a_checkpoint.pth"
+    bogus.write_text("hello")
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    done = subprocess.run(
+        [sys.executable, str(REPO / "tools" / "eval.py"), f"checkpoint={bogus}", "progress=false"],
+        capture_output=True, text=True, cwd=cwd, env=env, timeout=180,
+    )
+    assert done.returncode == 2, done.stderr[-2000:]
+    lines = done.stderr.strip().splitlines()
+    assert lines[-1].startswith("eval: error: ") and str(bogus) in lines[-1] and "checkpoint" in lines[-1]
+    assert not (cwd / "outputs").exists() or not any((cwd / "outputs").rglob("*.json"))
+    assert not any(p.is_dir() and p.name.startswith("not_a_checkpoint") for p in (cwd / "outputs").rglob("*")) \
+        if (cwd / "outputs").exists() else True
+
+    run_dir = tmp_path / "run"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    (run_dir / "checkpoints" / "latest.pth").write_bytes(b"\0garbage")
+    with pytest.raises(UserError, match=r"latest.pth.*trainer.resume=false"):
+        train(make_cfg(), run_dir)

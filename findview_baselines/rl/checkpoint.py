@@ -75,7 +75,8 @@ def load_checkpoint(path: str | os.PathLike, map_location: torch.device | str | 
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # unpickling error, truncated file, foreign pickle, ...
-        raise ValueError(f"{path} is not a loadable findview PPO checkpoint: {type(err).__name__}: {err}") from err
+        first = next((line.strip() for line in str(err).splitlines() if line.strip()), "")[:200]
+        raise ValueError(f"{path} is not a loadable findview checkpoint ({type(err).__name__}: {first})") from err
     if not isinstance(state, dict) or "signature" not in state or "policy" not in state:
         raise ValueError(f"{path} is not a findview PPO checkpoint (no 'signature' / 'policy' entries)")
     return state
