@@ -17,6 +17,8 @@ setup(
     long_description_content_type="text/markdown",
     python_requires=">=3.11",
     packages=find_packages(include=["findview", "findview.*", "findview_baselines", "findview_baselines.*"]),
+    # the frost textures of the `frost` corruption (Apache-2.0, see the LICENSE and NOTICE next to them)
+    package_data={"findview.corruptions": ["frost/*.png", "frost/*.jpg", "frost/LICENSE-imagecorruptions", "frost/NOTICE"]},
     install_requires=requirements,
     extras_require={
         "dev": ["pytest==9.2.0", "gymnasium==1.4.0"],

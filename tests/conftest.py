@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import findview  # noqa: F401  (first: sets OMP_WAIT_POLICY=PASSIVE before torch loads, see findview.runtime)
 import pytest
 import torch
 

@@ -178,7 +178,8 @@ def corrupt(
     if images.dim() != 4 or images.shape[1] != 3:
         raise ValueError(f"images must have shape (B, 3, H, W), got {tuple(images.shape)}")
     if min(images.shape[2], images.shape[3]) < MIN_SIDE:
-        raise ValueError(f"images must be at least {MIN_SIDE}x{MIN_SIDE} pixels, got {images.shape[2]}x{images.shape[3]}")
+        size = f"{images.shape[2]}x{images.shape[3]}"
+        raise ValueError(f"images must be at least {MIN_SIDE}x{MIN_SIDE} pixels, got {size}")
     is_uint8 = images.dtype == torch.uint8
     if not is_uint8 and not images.is_floating_point():
         raise ValueError(f"images must be uint8 or floating point, got {images.dtype}")
