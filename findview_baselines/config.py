@@ -22,6 +22,8 @@ from typing import Any, Optional
 
 from omegaconf import MISSING
 
+from findview_baselines.rl.dagger import DAggerConfig
+
 from findview.config import (
     ConfigError,
     CorruptionConfig,
@@ -234,40 +236,6 @@ class PPOAgentConfig:
 # ------------------------------------------------------------------------------------------------
 # Training
 # ------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class DAggerConfig:
-    """Imitation of the oracle (``trainer.algorithm=dagger``): roll out the learner mixed with the
-    oracle, label every visited state with the oracle's action, train with cross-entropy."""
-
-    rollout_steps: int = 64
-    """Steps per environment per update."""
-    beta_start: float = 1.0
-    """Probability of executing the oracle's action at update 0."""
-    beta_end: float = 0.0
-    """... after beta_decay_updates updates."""
-    beta_decay_updates: int = 200
-    """Updates over which beta decays linearly."""
-    buffer_size: int = 50000
-    """Labelled states kept (oldest dropped first)."""
-    seq_len: int = 16
-    """Length of the stored sequences the recurrent policy trains on, steps."""
-    batch_sequences: int = 32
-    """Sequences per gradient step."""
-    epochs: int = 1
-    """Passes over (a buffer-sized sample of) the buffer per update."""
-    lr: float = 1.0e-3
-    """Adam learning rate."""
-    adam_eps: float = 1.0e-5
-    """Adam's epsilon."""
-    max_grad_norm: float = 1.0
-    """Gradient-norm clip."""
-    stop_weight: float = 1.0
-    """Cross-entropy weight of states labelled stop."""
-    search_prior: str = "oracle"
-    """Labels where view and target do not overlap: oracle (the shortest path, which no image shows) |
-    sweep (a fixed covering search: pan right along the horizon)."""
 
 
 ALGORITHMS = ("ppo", "dagger")

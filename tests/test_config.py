@@ -107,7 +107,7 @@ def _schemas() -> list[type]:
         for _, obj in inspect.getmembers(module, dataclasses.is_dataclass):
             if obj.__module__ == module.__name__:
                 out.append(obj)
-    return out
+    return [*out, baseline_config.DAggerConfig]
 
 
 def test_every_schema_field_has_a_docstring() -> None:

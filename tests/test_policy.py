@@ -223,3 +223,134 @@ def test_build_policy_from_agent_config(repo_root) -> None:
     cfg.variant = "goal_encoder"
     policy = build_policy(cfg, 64, 64)
     assert policy.model_signature() == {"variant": "goal_encoder", "hidden_size": 16, "height": 64, "width": 64}
+
+
+# --------------------------------------------------------------------------------------------------
+# The correlation variant and the auxiliary rotation head
+# --------------------------------------------------------------------------------------------------
+
+
+def test_early_fusion_weights_keep_their_names() -> None:
+    """Checkpoints of the paper's variant stay loadable: the same parameter names as before."""
+    policy = Policy(64, 64, variant="early_fusion", hidden_size=16)
+    expected = {f"encoder.convs.{i}.{p}" for i in (0, 2, 4) for p in ("weight", "bias")}
+    expected |= {"encoder.fc.0.weight", "encoder.fc.0.bias", "actor.weight", "actor.bias"}
+    expected |= {"critic.weight", "critic.bias"}
+    expected |= {f"gru.{k}_{g}_l0" for k in ("weight", "bias") for g in ("ih", "hh")}
+    assert set(policy.state_dict()) == expected
+
+
+def test_correlation_volume_peaks_at_the_shift() -> None:
+    """Target maps = view maps moved by +2 cells along x: the +2 displacement bin matches."""
+    torch.manual_seed(0)
+    policy = Policy(64, 64, variant="correlation", hidden_size=16)
+    enc = policy.encoder
+    g = enc.grid[0]
+    assert enc.grid == (8, 8) and enc.shifts == (15, 15)
+    view = torch.randn(2, 32, g, g)
+    same = enc.correlation(view, view)
+    rolled = enc.correlation(view, torch.roll(view, shifts=2, dims=3))
+    centre = g - 1  # bin of displacement 0
+    # identical maps: cosine 1 for every pair at displacement 0
+    torch.testing.assert_close(same[:, 0, centre, centre], torch.ones(2))
+    torch.testing.assert_close(same[:, 1, centre, centre], torch.ones(2))
+    # rolled (a permutation of the cells, so the same centring): target cell (i, j + 2) is view cell
+    # (i, j), and with the wrap-around target cell (i, j - 6) is view cell (i, j) too: both bins are 1,
+    # every other bin is below
+    torch.testing.assert_close(rolled[:, 0, centre, centre + 2], torch.ones(2))
+    torch.testing.assert_close(rolled[:, 0, centre, centre - 6], torch.ones(2))
+    others = rolled[:, 0].clone()
+    others[:, centre, [centre + 2, centre - 6]] = -1.0
+    assert (others < 0.99).all()
+    # shifted without wrap (two new columns enter on the left): the +2 bin wins
+    shifted = torch.cat([torch.randn(2, 32, g, 2), view[..., :-2]], dim=3)
+    rolled = enc.correlation(view, shifted)
+    assert rolled[:, 0].flatten(1).argmax(dim=1).tolist() == [centre * 15 + centre + 2] * 2
+    # the log-count channel: g*g pairs at displacement 0 (-> 1), one pair at the corners (-> 0)
+    assert rolled[0, 2, centre, centre].item() == pytest.approx(1.0)
+    assert rolled[0, 2, 0, 0].item() == pytest.approx(0.0)
+    # the soft readout points the same way: expected dx > 0, dy ~ 0
+    soft = enc.soft_shift(rolled)
+    assert (soft[:, 1] > 0.05).all() and (soft[:, 0].abs() < soft[:, 1]).all()
+
+
+def test_correlation_mask_reset_and_gradients_reach_every_weight() -> None:
+    torch.manual_seed(2)
+    policy = Policy(48, 48, variant="correlation", hidden_size=16)
+    obs = random_obs(2, 48, 48)
+    stale = torch.randn(2, 16)
+    with torch.no_grad():
+        _, _, v_reset, h_reset = policy.act(obs, stale, torch.zeros(2), deterministic=True)
+        _, _, v_zero, h_zero = policy.act(obs, torch.zeros(2, 16), torch.ones(2), deterministic=True)
+    torch.testing.assert_close(v_reset, v_zero)
+    torch.testing.assert_close(h_reset, h_zero)
+
+    T, N = 3, 2
+    seq = random_obs(T * N, 48, 48, seed=4)
+    dist, values, _, features = policy.forward_features(seq, torch.zeros(N, 16), torch.ones(T * N))
+    assert features.shape == (T * N, policy.feature_size)
+    (dist.logits.pow(2).sum() + values.pow(2).sum()).backward()
+    no_grad = [name for name, p in policy.named_parameters() if p.grad is None or not bool(p.grad.abs().sum() > 0)]
+    assert no_grad == []
+
+
+def shifted_pairs(n: int, generator: torch.Generator, size: int = 32) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """View and target crops of smooth random strips; the target is the view's strip shifted by
+    ``s`` in [-12, 12] \\ {0} pixels (label dyaw = s / size, overlap 1) or, for a quarter of the pairs, a
+    crop of another strip (overlap 0)."""
+    strips = torch.rand(n, 3, size // 4, 3 * size // 4, generator=generator)
+    strips = torch.nn.functional.interpolate(strips, scale_factor=4, mode="bilinear", align_corners=False)
+    shift = torch.randint(1, 13, (n,), generator=generator) * (torch.randint(0, 2, (n,), generator=generator) * 2 - 1)
+    x0 = size
+    view = torch.stack([strips[i, :, :, x0 : x0 + size] for i in range(n)])
+    target = torch.stack([strips[i, :, :, x0 + int(shift[i]) : x0 + int(shift[i]) + size] for i in range(n)])
+    other = torch.arange(n) < n // 4
+    target[other] = target[other].roll(1, dims=0)  # another pair's target: nothing in common
+    labels = torch.stack([torch.zeros(n), shift.float() / size, (~other).float()], dim=1)
+    labels[other, :2] = 0.0
+    to_u8 = lambda x: (x * 255).round().to(torch.uint8)  # noqa: E731
+    return {"view": to_u8(view), "target": to_u8(target)}, labels
+
+
+def test_aux_head_learns_the_sign_of_a_yaw_shift() -> None:
+    from findview_baselines.rl.policy import AuxHead, aux_loss
+
+    torch.manual_seed(0)
+    old_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        policy = Policy(32, 32, variant="correlation", hidden_size=32)
+        head = AuxHead(policy.feature_size)
+        opt = torch.optim.Adam(list(policy.parameters()) + list(head.parameters()), lr=2e-3)
+        g = torch.Generator().manual_seed(1)
+        first = None
+        for step in range(150):
+            obs, labels = shifted_pairs(32, g)
+            terms = aux_loss(head(policy.encode(obs)), labels)
+            first = terms["loss"].item() if first is None else first
+            opt.zero_grad()
+            terms["loss"].backward()
+            opt.step()
+        with torch.no_grad():
+            obs, labels = shifted_pairs(256, torch.Generator().manual_seed(99))
+            pred = head(policy.encode(obs))
+            terms = aux_loss(pred, labels)
+    finally:
+        torch.set_num_threads(old_threads)
+    overlap = labels[:, 2] == 1
+    sign_acc = (pred[overlap, 1].sign() == labels[overlap, 1].sign()).float().mean().item()
+    assert terms["loss"].item() < 0.5 * first
+    assert sign_acc > 0.9
+    assert terms["overlap_accuracy"].item() > 0.8
+
+
+def test_aux_loss_by_hand() -> None:
+    from findview_baselines.rl.policy import aux_loss
+
+    pred = torch.tensor([[0.0, 0.5, 0.0], [1.0, 1.0, 0.0]])
+    targets = torch.tensor([[0.0, 0.2, 1.0], [0.0, 0.0, 0.0]])  # row 1 does not overlap: no rotation term
+    terms = aux_loss(pred, targets)
+    # smooth L1 (beta 0.1) of 0.3: 0.3 - 0.05 = 0.25; BCE of logit 0 is log 2 for both rows
+    assert terms["rotation_loss"].item() == pytest.approx(0.25)
+    assert terms["overlap_loss"].item() == pytest.approx(torch.log(torch.tensor(2.0)).item())
+    assert terms["loss"].item() == pytest.approx(0.25 + 0.6931472, rel=1e-5)

@@ -7,6 +7,11 @@ advantages ``A``::
     v_clipped   = old_v + clamp(v - old_v, -clip, clip)
     value_loss  = 0.5 * mean(max((v - R)^2, (v_clipped - R)^2))     (0.5 * mean((v - R)^2) if not clipped)
     loss        = policy_loss + value_coef * value_loss - entropy_coef * mean(entropy)
+                  (+ aux_coef * aux_loss when ``aux_coef > 0``: see ``policy.aux_loss``)
+
+With ``aux_coef > 0`` an :class:`~findview_baselines.rl.policy.AuxHead` on the policy's pre-GRU features
+is trained alongside (it belongs to :class:`PPO`, is saved in its ``state_dict`` and never in the policy
+weights); every rollout must then be stored with ``aux_targets=rotation_labels(env)``.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from typing import Any, Mapping
 import torch
 from torch import nn
 
-from findview_baselines.rl.policy import Policy
+from findview_baselines.rl.policy import AuxHead, Policy, aux_loss
 from findview_baselines.rl.storage import RolloutStorage
 
 
@@ -33,7 +38,7 @@ class PPOConfig:
     """PPO hyper-parameters (the ``agent`` config group, ``configs/agent/ppo.yaml``)."""
 
     lr: float = 2.5e-4
-    eps: float = 1e-5
+    adam_eps: float = 1e-5
     clip: float = 0.2
     value_coef: float = 0.5
     entropy_coef: float = 0.01
@@ -46,12 +51,23 @@ class PPOConfig:
     linear_decay: bool = True
     clipped_value_loss: bool = True
     normalize_advantage: bool = True
+    aux_coef: float = 0.0  # weight of the auxiliary rotation loss (0 = off: the paper's recipe)
+
+    @property
+    def eps(self) -> float:
+        """Adam epsilon (the former name of :attr:`adam_eps`)."""
+        return self.adam_eps
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "PPOConfig":
-        """Pick the known keys of a (Hydra / dict) agent config; other keys (name, variant, ...) are ignored."""
+        """Pick the known keys of a (Hydra / dict) agent config; other keys (name, variant, ...) are ignored.
+
+        The former key ``eps`` is read as ``adam_eps`` when ``adam_eps`` is absent."""
         known = {f.name for f in fields(cls)}
-        return cls(**{k: cfg[k] for k in known if k in cfg})
+        values = {k: cfg[k] for k in known if k in cfg}
+        if "adam_eps" not in values and "eps" in cfg:
+            values["adam_eps"] = cfg["eps"]
+        return cls(**values)
 
 
 def ppo_loss(
@@ -121,7 +137,15 @@ class PPO:
     def __init__(self, policy: Policy, cfg: PPOConfig) -> None:
         self.policy = policy
         self.cfg = cfg
-        self.optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, eps=cfg.eps)
+        if cfg.aux_coef < 0:
+            raise ValueError(f"agent.aux_coef must be >= 0, got {cfg.aux_coef}")
+        self.aux_head: AuxHead | None = None
+        params = list(policy.parameters())
+        if cfg.aux_coef > 0:
+            self.aux_head = AuxHead(policy.feature_size).to(next(policy.parameters()).device)
+            params += list(self.aux_head.parameters())
+        self.params = params
+        self.optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps)
         self.lr = cfg.lr
         self.clip = cfg.clip
 
@@ -140,7 +164,9 @@ class PPO:
 
         ``storage.compute_returns`` must have been called. Returns the mean over all mini-batches of
         ``policy_loss, value_loss, entropy, approx_kl, clip_fraction, grad_norm`` (pre-clipping norm),
-        plus the ``lr`` and ``clip`` in use. Raises ``FloatingPointError`` (before stepping the optimizer)
+        plus the ``lr`` and ``clip`` in use (and ``aux_loss, aux_rotation_loss, aux_overlap_accuracy``
+        with ``aux_coef > 0``; then a storage without aux targets raises ``ValueError``). Raises
+        ``FloatingPointError`` (before stepping the optimizer)
         if the loss or the gradient norm is not finite.
         """
         cfg = self.cfg
@@ -148,14 +174,26 @@ class PPO:
         if cfg.normalize_advantage:
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
 
+        if self.aux_head is not None and not storage.has_aux_targets:
+            raise ValueError(
+                "agent.aux_coef > 0 but the rollout holds no aux targets: pass "
+                "aux_targets=findview.task.oracle.rotation_labels(env) (taken before env.step) to storage.insert"
+            )
         totals: dict[str, float] = {}
         num_batches = 0
         self.policy.train()
         for _ in range(cfg.ppo_epochs):
             for batch in storage.recurrent_minibatches(advantages, cfg.num_mini_batches, generator):
-                log_probs, values, entropy = self.policy.evaluate_actions(
-                    batch.obs, batch.hidden0, batch.masks, batch.actions
-                )
+                aux_terms: dict[str, torch.Tensor] | None = None
+                if self.aux_head is None:
+                    log_probs, values, entropy = self.policy.evaluate_actions(
+                        batch.obs, batch.hidden0, batch.masks, batch.actions
+                    )
+                else:
+                    dist, values, _, features = self.policy.forward_features(batch.obs, batch.hidden0, batch.masks)
+                    log_probs, entropy = dist.log_prob(batch.actions), dist.entropy()
+                    assert batch.aux_targets is not None
+                    aux_terms = aux_loss(self.aux_head(features), batch.aux_targets)
                 terms = ppo_loss(
                     log_probs,
                     batch.old_log_probs,
@@ -169,11 +207,14 @@ class PPO:
                     entropy_coef=cfg.entropy_coef,
                     clipped_value_loss=cfg.clipped_value_loss,
                 )
+                if aux_terms is not None:
+                    terms["loss"] = terms["loss"] + cfg.aux_coef * aux_terms["loss"]
+                    terms["aux_loss"] = aux_terms["loss"]
                 _check_finite(terms)
 
                 self.optimizer.zero_grad(set_to_none=True)
                 terms["loss"].backward()
-                grad_norm = nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm)
+                grad_norm = nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 if not torch.isfinite(grad_norm):
                     raise FloatingPointError(f"non-finite gradient norm: {grad_norm.item()}")
                 self.optimizer.step()
@@ -181,6 +222,9 @@ class PPO:
                 for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"):
                     totals[name] = totals.get(name, 0.0) + terms[name].item()
                 totals["grad_norm"] = totals.get("grad_norm", 0.0) + grad_norm.item()
+                if aux_terms is not None:
+                    for name in ("loss", "rotation_loss", "overlap_accuracy"):
+                        totals[f"aux_{name}"] = totals.get(f"aux_{name}", 0.0) + aux_terms[name].item()
                 num_batches += 1
 
         stats = {name: value / num_batches for name, value in totals.items()}
@@ -191,10 +235,20 @@ class PPO:
     # ---------------------------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Optimizer state + current lr / clip (the policy weights are saved separately)."""
-        return {"optimizer": self.optimizer.state_dict(), "lr": self.lr, "clip": self.clip}
+        """Optimizer state + current lr / clip (+ the aux head's weights when on; the policy weights are
+        saved separately)."""
+        state: dict[str, Any] = {"optimizer": self.optimizer.state_dict(), "lr": self.lr, "clip": self.clip}
+        if self.aux_head is not None:
+            state["aux_head"] = self.aux_head.state_dict()
+        return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        if (self.aux_head is None) != (state.get("aux_head") is None):
+            raise ValueError(
+                "saved PPO state and this run disagree on the auxiliary loss (agent.aux_coef > 0 in one only)"
+            )
+        if self.aux_head is not None:
+            self.aux_head.load_state_dict(state["aux_head"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.lr, self.clip = state["lr"], state["clip"]
         for group in self.optimizer.param_groups:

@@ -25,6 +25,7 @@ from typing import Any, Callable, Iterator, Mapping
 import torch
 from torch.distributions import Distribution
 
+from findview.task.oracle import rotation_labels
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
 from findview_baselines.rl.policy import Policy, check_signature
 from findview_baselines.rl.ppo import PPO, PPOConfig
@@ -148,6 +149,8 @@ class PPOTrainer:
             t0 = time.perf_counter()
             obs, hidden, masks = self.storage.current()
             actions, log_probs, values, new_hidden = self.policy.act(obs, hidden, masks)
+            # labels of obs[t] from the privileged state, taken before the step (never shown to the policy)
+            aux = rotation_labels(self.env).to(self.device) if self.cfg.aux_coef > 0 else None
             _sync(self.device)
             t1 = time.perf_counter()
             next_obs, rewards, done, infos = self.env.step(actions)
@@ -157,7 +160,7 @@ class PPOTrainer:
 
             rewards = rewards.to(self.device, torch.float32)
             self.storage.insert(
-                next_obs, new_hidden, actions, log_probs, values, rewards, _masks(self.env, self.device)
+                next_obs, new_hidden, actions, log_probs, values, rewards, _masks(self.env, self.device), aux_targets=aux
             )
             self.episode_returns += rewards
             finished = [i for i, info in enumerate(infos) if info is not None]

@@ -448,12 +448,12 @@ def make_algorithm(conf: Mapping[str, Any], env: Any, policy: Policy, scheduler:
     if t.get("algorithm", "ppo") == "dagger":
         from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer
 
-        dcfg = DAggerConfig(**dict(t.get("dagger") or {}))
+        dcfg = DAggerConfig.from_mapping(dict(t.get("dagger") or {}))
         return DAggerTrainer(env, policy, dcfg, int(t["num_updates"]), scheduler, set_level, seed=int(t["seed"]))
     from findview_baselines.rl.ppo import PPOConfig
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
-    ppo_cfg = PPOConfig.from_mapping({**agent, "eps": agent.get("adam_eps", 1e-5)})  # TEMP until ppo.py renames
+    ppo_cfg = PPOConfig.from_mapping(agent)
     return PPOTrainer(env, policy, ppo_cfg, int(t["num_updates"]), scheduler, set_level, seed=int(t["seed"]))
 
 

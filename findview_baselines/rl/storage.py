@@ -6,6 +6,10 @@ Index conventions (``T`` = rollout steps, ``N`` = environments)::
               outputs actions[t], log_probs[t], values[t]
               result  rewards[t], and obs[t+1], masks[t+1] returned by env.step(actions[t])
 
+Optional auxiliary targets: ``aux_targets[t]`` (N, 3) are the privileged rotation labels of ``obs[t]``
+(``findview.task.oracle.rotation_labels(env)`` computed *before* ``env.step``); they reach the
+mini-batches only when every step of the rollout got them.
+
 ``masks[t] == 0`` means ``obs[t]`` starts a new episode (with an auto-resetting env this is the same as
 "the episode ended at step t-1"), so GAE does not bootstrap across it and the GRU state is zeroed there.
 Index ``T`` of obs / hidden / masks / values holds the state after the last step; ``after_update``
@@ -19,13 +23,16 @@ from typing import Iterator, Mapping
 
 import torch
 
+AUX_SIZE = 3  # (dpitch / fov, dyaw / fov, overlap): findview.task.oracle.rotation_labels
+
 
 @dataclass
 class MiniBatch:
     """A set of whole environment sequences, time-major and flattened (``n`` envs, ``T`` steps).
 
     view, target: (T*n, 3, H, W) uint8; hidden0: (n, hidden); masks, actions, old_log_probs, old_values,
-    returns, advantages: (T*n,); env_ids: (n,) which environments (columns of the storage) these are.
+    returns, advantages: (T*n,); env_ids: (n,) which environments (columns of the storage) these are;
+    aux_targets: (T*n, 3) rotation labels, or ``None`` when the rollout was stored without them.
     """
 
     env_ids: torch.Tensor
@@ -38,6 +45,7 @@ class MiniBatch:
     old_values: torch.Tensor
     returns: torch.Tensor
     advantages: torch.Tensor
+    aux_targets: torch.Tensor | None = None
 
     @property
     def obs(self) -> dict[str, torch.Tensor]:
@@ -74,6 +82,8 @@ class RolloutStorage:
         self.values = torch.zeros(T + 1, N, **kw)  # values[T] = bootstrap value, set by compute_returns
         self.rewards = torch.zeros(T, N, **kw)
         self.returns = torch.zeros(T, N, **kw)
+        self.aux_targets = torch.zeros(T, N, AUX_SIZE, **kw)
+        self.aux_valid = torch.zeros(T, dtype=torch.bool)  # which steps got aux targets (CPU flags)
         self.step = 0
 
     # ---------------------------------------------------------------------------------------------
@@ -105,6 +115,7 @@ class RolloutStorage:
         values: torch.Tensor,
         rewards: torch.Tensor,
         next_masks: torch.Tensor,
+        aux_targets: torch.Tensor | None = None,
     ) -> None:
         """Record one step: what the policy output at step t and what the env returned.
 
@@ -114,6 +125,8 @@ class RolloutStorage:
             actions, log_probs, values: (N,) from ``policy.act`` at step t.
             rewards: (N,) reward of step t.
             next_masks: (N,) 0 where ``next_obs`` starts a new episode (``~env.new_episode``).
+            aux_targets: optional (N, 3) rotation labels of the observation acted on at step t (the one
+                from :meth:`current`), i.e. ``rotation_labels(env)`` taken before ``env.step``.
         """
         if self.step >= self.num_steps:
             raise IndexError(f"rollout storage is full ({self.num_steps} steps); call after_update()")
@@ -126,7 +139,15 @@ class RolloutStorage:
         self.target[t + 1].copy_(next_obs["target"])
         self.hidden[t + 1].copy_(next_hidden)
         self.masks[t + 1].copy_(next_masks)
+        if aux_targets is not None:
+            self.aux_targets[t].copy_(aux_targets)
+        self.aux_valid[t] = aux_targets is not None
         self.step = t + 1
+
+    @property
+    def has_aux_targets(self) -> bool:
+        """Whether every step of the (full) rollout was inserted with ``aux_targets``."""
+        return bool(self.aux_valid.all())
 
     def after_update(self) -> None:
         """Carry the last observation / state / mask over to index 0 for the next rollout."""
@@ -134,6 +155,7 @@ class RolloutStorage:
         self.target[0].copy_(self.target[-1])
         self.hidden[0].copy_(self.hidden[-1])
         self.masks[0].copy_(self.masks[-1])
+        self.aux_valid.zero_()
         self.step = 0
 
     # ---------------------------------------------------------------------------------------------
@@ -189,6 +211,7 @@ class RolloutStorage:
             )
         order = torch.randperm(N, generator=generator).to(self.device)
         T = self.num_steps
+        with_aux = self.has_aux_targets
         for env_ids in order.tensor_split(num_mini_batches):
 
             def take(x: torch.Tensor) -> torch.Tensor:
@@ -206,4 +229,5 @@ class RolloutStorage:
                 old_values=take(self.values),
                 returns=take(self.returns),
                 advantages=advantages[:, env_ids].flatten(0, 1),
+                aux_targets=take(self.aux_targets) if with_aux else None,
             )

@@ -1,0 +1,227 @@
+"""Privileged labels from the environment's state: the oracle's action and the relative rotation.
+
+Everything here reads the true rotations (``pitch``, ``yaw``, ``target_pitch``, ``target_yaw``: integer
+degrees, yaw in ``(-180, 180]``) that a batched :class:`~findview.task.FindViewEnv` keeps as ``(N,)``
+long tensors on its device. These labels are for training only (imitation learning, auxiliary losses);
+a policy must never see them as inputs.
+
+Conventions (docs/TASK.md): ``+pitch`` looks up (action ``UP``), ``+yaw`` pans right (action ``RIGHT``).
+
+- **Oracle action** (:func:`oracle_actions`): a shortest path. ``dpitch = target_pitch - pitch`` and
+  ``dyaw = wrap(target_yaw - yaw)`` in ``(-180, 180]``; exactly 180 degrees apart counts as ``+180``, so
+  the oracle pans **right** then (both ways are equally short). One axis is finished before the other
+  (``order``: ``pitch_first`` (default, as the rule-based oracle agent), ``yaw_first`` or
+  ``larger_first``: the axis with the larger remaining distance, pitch on ties). ``STOP`` once both
+  remaining distances are below ``step_deg`` (0 for the default 1-degree steps).
+- **Optimal action sets** (:func:`optimal_action_mask`): every action on *some* shortest path (``UP`` or
+  ``DOWN`` while pitch is off, ``LEFT`` or ``RIGHT`` while yaw is off, both yaw moves at exactly 180
+  degrees, ``STOP`` only on the target). An imitation learner trained on the set may pick either axis
+  first, so it need not resolve which remaining distance is larger, or a 1-degree pitch offset while the
+  target is still far to the side.
+- **Overlap** (:func:`overlap_mask`): the view and the target overlap when ``|dpitch| <= fov`` and
+  ``|dyaw| <= fov`` (``fov``: the horizontal field of view in degrees); this is the complement of the
+  ``hard`` difficulty under the default ``hard_rule="or"`` (``|dpitch| > f OR dyaw > f``), so easy and
+  medium starts always overlap and hard starts never do.
+- **Sweep search prior** (:func:`sweep_actions`): what a learner can do without knowing where the target
+  is. Where the views overlap it is the oracle's action; where they do not, it first matches the pitch
+  (the target's pitch is partly visible in its content: sky, floor, ceiling), then pans ``RIGHT`` until the
+  views overlap. This covers the sphere without loops (with ``|dpitch| <= fov`` a full turn always reaches
+  an overlapping view) at the price of up to ``360 - 2 * fov`` extra degrees when the target lay to the left.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from findview.geometry import wrap_yaw
+from findview.task.actions import Action
+
+__all__ = [
+    "ORDERS",
+    "SEARCH_PRIORS",
+    "optimal_action_mask",
+    "optimal_action_mask_for",
+    "oracle_actions",
+    "oracle_actions_for",
+    "overlap_mask",
+    "rotation_labels",
+    "rotation_targets",
+    "sweep_action_mask",
+    "sweep_actions",
+]
+
+ORDERS = ("pitch_first", "yaw_first", "larger_first")
+SEARCH_PRIORS = ("oracle", "sweep")
+
+
+def _deltas(
+    pitch: torch.Tensor, yaw: torch.Tensor, target_pitch: torch.Tensor, target_yaw: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed ``(dpitch, dyaw)`` in degrees, ``dyaw`` wrapped into ``(-180, 180]``; all (N,) long."""
+    pitch, yaw = torch.as_tensor(pitch), torch.as_tensor(yaw)
+    target_pitch = torch.as_tensor(target_pitch, device=pitch.device)
+    target_yaw = torch.as_tensor(target_yaw, device=pitch.device)
+    dp = (target_pitch - pitch).long()
+    dy = wrap_yaw((target_yaw - yaw).long())
+    return dp, dy
+
+
+def oracle_actions(
+    pitch: torch.Tensor,
+    yaw: torch.Tensor,
+    target_pitch: torch.Tensor,
+    target_yaw: torch.Tensor,
+    step_deg: int = 1,
+    order: str = "pitch_first",
+) -> torch.Tensor:
+    """The shortest-path action for every environment, ``(N,)`` long on the inputs' device.
+
+    Args:
+        pitch, yaw: current rotation (N,), integer degrees.
+        target_pitch, target_yaw: target rotation (N,), integer degrees.
+        step_deg: degrees per move (the task's ``step_deg``); an axis counts as done when its remaining
+            distance is below one step.
+        order: which axis to finish first: ``pitch_first``, ``yaw_first`` or ``larger_first`` (larger
+            remaining distance first, pitch on ties).
+
+    Exactly 180 degrees of yaw apart, the oracle pans ``RIGHT`` (see the module docstring).
+    """
+    if order not in ORDERS:
+        raise ValueError(f"oracle order must be one of {ORDERS}, got {order!r}")
+    if int(step_deg) != step_deg or step_deg < 1:
+        raise ValueError(f"step_deg must be a positive integer, got {step_deg!r}")
+    dp, dy = _deltas(pitch, yaw, target_pitch, target_yaw)
+    pitch_move = torch.where(dp > 0, int(Action.UP), int(Action.DOWN))
+    yaw_move = torch.where(dy > 0, int(Action.RIGHT), int(Action.LEFT))
+    need_p = dp.abs() >= step_deg
+    need_y = dy.abs() >= step_deg
+    if order == "pitch_first":
+        pitch_now = need_p
+    elif order == "yaw_first":
+        pitch_now = need_p & ~need_y
+    else:  # larger_first
+        pitch_now = need_p & (dp.abs() >= dy.abs())
+    stop = torch.full_like(dp, int(Action.STOP))
+    return torch.where(pitch_now, pitch_move, torch.where(need_y, yaw_move, torch.where(need_p, pitch_move, stop)))
+
+
+def optimal_action_mask(
+    pitch: torch.Tensor,
+    yaw: torch.Tensor,
+    target_pitch: torch.Tensor,
+    target_yaw: torch.Tensor,
+    step_deg: int = 1,
+) -> torch.Tensor:
+    """(N, 5) bool, column ``a`` true when action ``a`` lies on a shortest path (see the module docstring).
+
+    Every row has at least one true entry; ``STOP`` is true only where both remaining distances are below
+    one step, and then alone.
+    """
+    if int(step_deg) != step_deg or step_deg < 1:
+        raise ValueError(f"step_deg must be a positive integer, got {step_deg!r}")
+    dp, dy = _deltas(pitch, yaw, target_pitch, target_yaw)
+    need_p = dp.abs() >= step_deg
+    need_y = dy.abs() >= step_deg
+    mask = torch.zeros(dp.shape[0], len(Action), dtype=torch.bool, device=dp.device)
+    mask[:, int(Action.UP)] = need_p & (dp > 0)
+    mask[:, int(Action.DOWN)] = need_p & (dp < 0)
+    mask[:, int(Action.RIGHT)] = need_y & (dy > 0)
+    mask[:, int(Action.LEFT)] = need_y & ((dy < 0) | (dy == 180))  # 180 apart: both ways are as short
+    mask[:, int(Action.STOP)] = ~need_p & ~need_y
+    return mask
+
+
+def sweep_action_mask(
+    pitch: torch.Tensor,
+    yaw: torch.Tensor,
+    target_pitch: torch.Tensor,
+    target_yaw: torch.Tensor,
+    fov: float,
+    step_deg: int = 1,
+) -> torch.Tensor:
+    """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the sweep's moves
+    (the pitch move towards the target while pitch is off, and ``RIGHT``)."""
+    optimal = optimal_action_mask(pitch, yaw, target_pitch, target_yaw, step_deg)
+    dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
+    search = torch.zeros_like(optimal)
+    search[:, int(Action.UP)] = (dp.abs() >= step_deg) & (dp > 0)
+    search[:, int(Action.DOWN)] = (dp.abs() >= step_deg) & (dp < 0)
+    search[:, int(Action.RIGHT)] = True
+    overlap = overlap_mask(pitch, yaw, target_pitch, target_yaw, fov)
+    return torch.where(overlap[:, None], optimal, search)
+
+
+def overlap_mask(
+    pitch: torch.Tensor, yaw: torch.Tensor, target_pitch: torch.Tensor, target_yaw: torch.Tensor, fov: float
+) -> torch.Tensor:
+    """(N,) bool: ``|dpitch| <= fov`` and ``|dyaw| <= fov`` (degrees), i.e. not ``hard`` under the "or" rule."""
+    dp, dy = _deltas(pitch, yaw, target_pitch, target_yaw)
+    return (dp.abs() <= fov) & (dy.abs() <= fov)
+
+
+def sweep_actions(
+    pitch: torch.Tensor,
+    yaw: torch.Tensor,
+    target_pitch: torch.Tensor,
+    target_yaw: torch.Tensor,
+    fov: float,
+    step_deg: int = 1,
+    order: str = "pitch_first",
+) -> torch.Tensor:
+    """Oracle actions where the views overlap; elsewhere match the pitch, then pan ``RIGHT`` (N,) long.
+
+    See the module docstring ("sweep search prior"). ``fov`` is the horizontal field of view in degrees.
+    """
+    oracle = oracle_actions(pitch, yaw, target_pitch, target_yaw, step_deg, order)
+    dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
+    pitch_move = torch.where(dp > 0, int(Action.UP), int(Action.DOWN))
+    search = torch.where(dp.abs() >= step_deg, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
+    return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
+
+
+def oracle_actions_for(env: Any, order: str = "pitch_first", search: str = "oracle") -> torch.Tensor:
+    """Labels for the environments' current observations, (N,) long on ``env.device``.
+
+    Reads ``env.pitch, env.yaw, env.target_pitch, env.target_yaw`` (and ``env.step_deg``, ``env.sim.fov``).
+    ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`. Call it before
+    ``env.step`` to label the observation the policy acts on.
+    """
+    if search not in SEARCH_PRIORS:
+        raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
+    step = int(getattr(env, "step_deg", 1))
+    if search == "sweep":
+        return sweep_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step, order)
+    return oracle_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, step, order)
+
+
+def optimal_action_mask_for(env: Any, search: str = "oracle") -> torch.Tensor:
+    """(N, 5) bool action sets of the environments' current observations (``search`` as in
+    :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`)."""
+    if search not in SEARCH_PRIORS:
+        raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
+    step = int(getattr(env, "step_deg", 1))
+    if search == "sweep":
+        return sweep_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step)
+    return optimal_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, step)
+
+
+def rotation_targets(
+    pitch: torch.Tensor, yaw: torch.Tensor, target_pitch: torch.Tensor, target_yaw: torch.Tensor, fov: float
+) -> torch.Tensor:
+    """(N, 3) float32: ``dpitch / fov``, ``dyaw / fov`` (signed, dyaw wrapped) and overlap (1.0 / 0.0).
+
+    ``dpitch > 0``: the target lies above (``UP`` reduces it); ``dyaw > 0``: to the right.
+    """
+    dp, dy = _deltas(pitch, yaw, target_pitch, target_yaw)
+    overlap = (dp.abs() <= fov) & (dy.abs() <= fov)
+    return torch.stack([dp.float() / float(fov), dy.float() / float(fov), overlap.float()], dim=1)
+
+
+def rotation_labels(env: Any) -> torch.Tensor:
+    """:func:`rotation_targets` of the environments' current observations, (N, 3) on ``env.device``.
+
+    Call it before ``env.step`` and pass it as ``aux_targets`` to ``RolloutStorage.insert``.
+    """
+    return rotation_targets(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov))

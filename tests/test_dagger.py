@@ -1,0 +1,408 @@
+"""Privileged oracle labels (findview.task.oracle) and the DAgger trainer (findview_baselines.rl.dagger)."""
+
+from __future__ import annotations
+
+import io
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from findview.dataset import EpisodeSampler, ImageEntry
+from findview.geometry import l1_distance, wrap_yaw
+from findview.metrics import aggregate
+from findview.sim import PanoramaBank, Simulator
+from findview.task import Action, FindViewEnv, StaticEpisodeSource
+from findview.task.oracle import (
+    optimal_action_mask,
+    optimal_action_mask_for,
+    oracle_actions,
+    oracle_actions_for,
+    overlap_mask,
+    rotation_labels,
+    rotation_targets,
+    sweep_action_mask,
+    sweep_actions,
+)
+from findview.task.sources import SampledEpisodeSource
+from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer, SequenceBuffer, beta_at, set_nll
+from findview_baselines.rl.policy import Policy
+from findview_baselines.rl.ppo_trainer import UpdateAbandoned
+from findview_baselines.rl.scheduler import DifficultyScheduler
+
+UP, DOWN, LEFT, RIGHT, STOP = (int(a) for a in (Action.UP, Action.DOWN, Action.LEFT, Action.RIGHT, Action.STOP))
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """These small networks run fastest on one thread, and a second one stalls on a busy machine."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def t(*values: int) -> torch.Tensor:
+    return torch.tensor(values, dtype=torch.long)
+
+
+# --------------------------------------------------------------------------------------------------
+# Oracle labels, hand-computed
+# --------------------------------------------------------------------------------------------------
+
+
+def test_oracle_single_axis_moves_and_stop() -> None:
+    # from (0, 0) to: above, below, right, left, here
+    actions = oracle_actions(t(0, 0, 0, 0, 0), t(0, 0, 0, 0, 0), t(5, -3, 0, 0, 0), t(0, 0, 10, -10, 0))
+    assert actions.tolist() == [UP, DOWN, RIGHT, LEFT, STOP]
+    assert actions.dtype == torch.long
+
+
+def test_oracle_takes_the_short_way_round_and_pans_right_at_180() -> None:
+    # 170 -> -170 is 20 degrees to the right; -170 -> 170 is 20 to the left; 0 -> 180 and 90 -> -90 are
+    # exactly 180 apart (documented: RIGHT)
+    actions = oracle_actions(t(0, 0, 0, 0), t(170, -170, 0, 90), t(0, 0, 0, 0), t(-170, 170, 180, -90))
+    assert actions.tolist() == [RIGHT, LEFT, RIGHT, RIGHT]
+
+
+def test_oracle_orders() -> None:
+    args = (t(0, 0, 0), t(0, 0, 0), t(5, 5, 12), t(10, -5, 3))  # (5, +10), (5, -5) tie, (12, +3)
+    assert oracle_actions(*args, order="pitch_first").tolist() == [UP, UP, UP]
+    assert oracle_actions(*args, order="yaw_first").tolist() == [RIGHT, LEFT, RIGHT]
+    assert oracle_actions(*args, order="larger_first").tolist() == [RIGHT, UP, UP]
+    with pytest.raises(ValueError, match="order"):
+        oracle_actions(*args, order="diagonal")
+
+
+def test_oracle_with_coarse_steps_stops_below_one_step() -> None:
+    # step_deg 2: a remaining 1 degree cannot be reduced, 2 can
+    actions = oracle_actions(t(0, 0, 0), t(0, 0, 0), t(1, 2, 0), t(1, 0, -2), step_deg=2)
+    assert actions.tolist() == [STOP, UP, LEFT]
+
+
+def walk(actions_fn, pitch: torch.Tensor, yaw: torch.Tensor, tp: torch.Tensor, ty: torch.Tensor, steps: int):
+    """Apply ``actions_fn`` with the environment's rules (1-degree steps, pitch clamp 60, yaw wrap) until
+    every env stopped; returns the number of moves each made before its STOP (-1 if it never stopped)."""
+    n = pitch.shape[0]
+    moves = torch.full((n,), -1, dtype=torch.long)
+    for k in range(steps):
+        a = actions_fn(pitch, yaw, tp, ty)
+        newly = (a == STOP) & (moves < 0)
+        moves[newly] = k
+        run = moves < 0
+        pitch = (pitch + ((a == UP).long() - (a == DOWN).long()) * run).clamp(-60, 60)
+        yaw = wrap_yaw(yaw + ((a == RIGHT).long() - (a == LEFT).long()) * run)
+        if bool((moves >= 0).all()):
+            break
+    return moves, pitch, yaw
+
+
+def test_following_the_oracle_walks_a_shortest_path() -> None:
+    g = torch.Generator().manual_seed(0)
+    n = 200
+    p0, tp = torch.randint(-60, 61, (n,), generator=g), torch.randint(-60, 61, (n,), generator=g)
+    y0, ty = torch.randint(-179, 181, (n,), generator=g), torch.randint(-179, 181, (n,), generator=g)
+    for order in ("pitch_first", "yaw_first", "larger_first"):
+        moves, pitch, yaw = walk(lambda *s: oracle_actions(*s, order=order), p0, y0, tp, ty, 400)
+        assert torch.equal(moves, l1_distance(p0, y0, tp, ty))  # exactly |dpitch| + dyaw moves, then STOP
+        assert torch.equal(pitch, tp) and torch.equal(yaw, ty)
+
+
+def test_optimal_action_sets() -> None:
+    # (+5 up, +10 right): UP or RIGHT; here: STOP; exactly 180 apart: LEFT or RIGHT; (-3 down, 20 left)
+    mask = optimal_action_mask(t(0, 0, 0, 3), t(0, 0, 90, 0), t(5, 0, 0, 0), t(10, 0, -90, -20))
+    assert mask.int().tolist() == [[1, 0, 0, 1, 0], [0, 0, 0, 0, 1], [0, 0, 1, 1, 0], [0, 1, 1, 0, 0]]
+    # sweep: no overlap (150 left, 5 up) -> UP or RIGHT; overlapping 30 left -> LEFT
+    mask = sweep_action_mask(t(0, 0), t(0, 0), t(5, 0), t(-150, -30), fov=90)
+    assert mask.int().tolist() == [[1, 0, 0, 1, 0], [0, 0, 1, 0, 0]]
+    env = SimpleNamespace(pitch=t(0), yaw=t(0), target_pitch=t(0), target_yaw=t(-150), step_deg=1,
+                          sim=SimpleNamespace(fov=90.0))
+    assert optimal_action_mask_for(env).int().tolist() == [[0, 0, 1, 0, 0]]
+    assert optimal_action_mask_for(env, search="sweep").int().tolist() == [[0, 0, 0, 1, 0]]
+
+
+def test_any_action_of_the_set_walks_a_shortest_path() -> None:
+    g = torch.Generator().manual_seed(2)
+    n = 200
+    p0, tp = torch.randint(-60, 61, (n,), generator=g), torch.randint(-60, 61, (n,), generator=g)
+    y0, ty = torch.randint(-179, 181, (n,), generator=g), torch.randint(-179, 181, (n,), generator=g)
+
+    def random_member(*state: torch.Tensor) -> torch.Tensor:
+        mask = optimal_action_mask(*state)
+        return torch.multinomial(mask.float(), 1, generator=g).squeeze(1)
+
+    moves, pitch, yaw = walk(random_member, p0, y0, tp, ty, 400)
+    assert torch.equal(moves, l1_distance(p0, y0, tp, ty))
+    assert torch.equal(pitch, tp) and torch.equal(yaw, ty)
+
+
+def test_set_nll_by_hand() -> None:
+    logits = torch.log(torch.tensor([[0.1, 0.2, 0.3, 0.3, 0.1], [0.1, 0.2, 0.3, 0.3, 0.1]]))
+    accepted = torch.tensor([[1, 0, 0, 1, 0], [0, 0, 0, 0, 1]], dtype=torch.bool)
+    # -log(0.1 + 0.3) and -log(0.1)
+    expected = torch.tensor([-np.log(0.4), -np.log(0.1)])
+    assert set_nll(logits, accepted).item() == pytest.approx(expected.mean().item(), rel=1e-5)
+    weights = torch.tensor([1.0, 1.0, 1.0, 1.0, 3.0])  # stop weighs 3
+    assert set_nll(logits, accepted, weights).item() == pytest.approx(
+        (expected[0] + 3 * expected[1]).item() / 4, rel=1e-5
+    )
+    # a one-action set is the cross-entropy
+    one_hot = torch.nn.functional.one_hot(torch.tensor([2, 4]), 5).bool()
+    expected_ce = torch.nn.functional.cross_entropy(logits, torch.tensor([2, 4]))
+    torch.testing.assert_close(set_nll(logits, one_hot), expected_ce)
+
+
+def test_overlap_and_rotation_targets() -> None:
+    # fov 90: (+30 up, 45 left) overlaps; 120 right does not; 100 up does not; exactly 90 right does
+    args = (t(0, 0, -50, 0), t(0, 0, 0, 10), t(30, 0, 50, 0), t(-45, 120, 0, 100))
+    assert overlap_mask(*args, fov=90).tolist() == [True, False, False, True]
+    labels = rotation_targets(*args, fov=90)
+    assert labels.dtype == torch.float32 and labels.shape == (4, 3)
+    expected = torch.tensor([[30 / 90, -45 / 90, 1.0], [0.0, 120 / 90, 0.0], [100 / 90, 0.0, 0.0], [0.0, 1.0, 1.0]])
+    torch.testing.assert_close(labels, expected)
+
+
+def test_sweep_prior_matches_pitch_then_pans_right() -> None:
+    # no overlap: 10 below and 150 left -> DOWN; level and 150 left -> RIGHT (not the oracle's LEFT);
+    # overlapping 30 left -> LEFT like the oracle; on target -> STOP
+    args = (t(10, 0, 0, 5), t(0, 0, 0, 5), t(0, 0, 0, 5), t(-150, -150, -30, 5))
+    assert sweep_actions(*args, fov=90).tolist() == [DOWN, RIGHT, LEFT, STOP]
+    assert oracle_actions(*args).tolist() == [DOWN, LEFT, LEFT, STOP]
+
+
+def test_sweep_prior_always_reaches_the_target_without_looping() -> None:
+    g = torch.Generator().manual_seed(1)
+    n = 300
+    p0, tp = torch.randint(-60, 61, (n,), generator=g), torch.randint(-60, 61, (n,), generator=g)
+    y0, ty = torch.randint(-179, 181, (n,), generator=g), torch.randint(-179, 181, (n,), generator=g)
+    moves, pitch, yaw = walk(lambda *s: sweep_actions(*s, fov=90), p0, y0, tp, ty, 800)
+    assert (moves >= 0).all() and torch.equal(pitch, tp) and torch.equal(yaw, ty)
+    # at most the pitch distance plus one right turn short of an overlap, plus the final approach
+    assert (moves <= (tp - p0).abs() + 360).all()
+    assert (moves >= l1_distance(p0, y0, tp, ty)).all()
+
+
+def test_labels_from_an_env_object() -> None:
+    env = SimpleNamespace(
+        pitch=t(0, 0), yaw=t(0, 0), target_pitch=t(0, 0), target_yaw=t(-150, -20), step_deg=1,
+        sim=SimpleNamespace(fov=90.0),
+    )
+    assert oracle_actions_for(env).tolist() == [LEFT, LEFT]
+    assert oracle_actions_for(env, search="sweep").tolist() == [RIGHT, LEFT]
+    torch.testing.assert_close(rotation_labels(env), torch.tensor([[0.0, -150 / 90, 0.0], [0.0, -20 / 90, 1.0]]))
+    with pytest.raises(ValueError, match="search prior"):
+        oracle_actions_for(env, search="spiral")
+
+
+# --------------------------------------------------------------------------------------------------
+# Config, beta, buffer
+# --------------------------------------------------------------------------------------------------
+
+
+def test_config_validation_and_beta_schedule() -> None:
+    with pytest.raises(ValueError, match="multiple of dagger.seq_len"):
+        DAggerConfig(rollout_steps=30, seq_len=16)
+    with pytest.raises(ValueError, match="beta_end"):
+        DAggerConfig(beta_end=1.5)
+    with pytest.raises(ValueError, match="dagger.search_prior"):
+        DAggerConfig(search_prior="spiral")
+    with pytest.raises(ValueError, match="dagger.labels"):
+        DAggerConfig(labels="soft")
+    cfg = DAggerConfig.from_mapping({"beta_start": 1.0, "beta_end": 0.2, "beta_decay_updates": 4, "name": "x"})
+    assert [beta_at(cfg, u) for u in (0, 1, 2, 4, 9)] == pytest.approx([1.0, 0.8, 0.6, 0.2, 0.2])
+    assert beta_at(DAggerConfig(beta_decay_updates=0, beta_end=0.3), 0) == 0.3
+
+
+def test_sequence_buffer_is_fifo_and_batches_time_major() -> None:
+    L, H = 3, 2
+    buf = SequenceBuffer(capacity=4, seq_len=L, height=2, width=2, hidden_size=H)
+
+    def chunks(first: int, n: int):
+        ids = torch.arange(first, first + n)  # chunk id, written into every field
+        steps = torch.arange(L)[:, None]
+        view = (ids[None, :] * 10 + steps).to(torch.uint8)[..., None, None, None].expand(L, n, 3, 2, 2)
+        labels = torch.nn.functional.one_hot((ids[None] + steps) % 5, 5).bool()
+        return view, view + 1, ids[:, None].float().expand(n, H), torch.ones(L, n), labels
+
+    buf.add(*chunks(0, 3))
+    buf.add(*chunks(3, 3))  # overwrites the two oldest (ids 0, 1)
+    assert len(buf) == 4 and buf.pos == 2
+    stored = sorted(int(h) for h in buf.hidden0[:, 0])
+    assert stored == [2, 3, 4, 5]
+    slot = int((buf.hidden0[:, 0] == 4).nonzero())
+    other = int((buf.hidden0[:, 0] == 2).nonzero())
+    b = buf.batch(torch.tensor([slot, other]))
+    # time-major rows: t * 2 + k
+    assert b["view"][:, 0, 0, 0].tolist() == [40, 20, 41, 21, 42, 22]
+    assert b["labels"].int().argmax(dim=1).tolist() == [4, 2, 0, 3, 1, 4]
+    assert b["hidden0"][:, 0].tolist() == [4.0, 2.0]
+    idx = buf.sample(10, torch.Generator().manual_seed(0))
+    assert sorted(idx.tolist()) == [0, 1, 2, 3]
+
+
+# --------------------------------------------------------------------------------------------------
+# The trainer on real FindView environments
+# --------------------------------------------------------------------------------------------------
+
+
+def colour_panorama(seed: int, width: int = 128) -> np.ndarray:
+    """``width/2 x width`` BGR: hue turns once around the longitude, brightness falls with latitude, discs."""
+    rng = np.random.default_rng(seed)
+    height = width // 2
+    u = np.arange(width, dtype=np.float64)[None, :].repeat(height, 0)
+    v = np.arange(height, dtype=np.float64)[:, None].repeat(width, 1)
+    hue = (rng.integers(0, 180) + 180.0 * u / width) % 180
+    value = 60 + 180 * (1 - v / height)
+    image = cv2.cvtColor(np.stack([hue, np.full_like(hue, 200), value], -1).astype(np.uint8), cv2.COLOR_HSV2BGR)
+    for _ in range(25):
+        x, y = (int(c) for c in rng.integers(0, (width, height)))
+        cv2.circle(image, (x, y), int(rng.integers(2, height // 8)), tuple(int(c) for c in rng.integers(0, 256, 3)), -1)
+    return image
+
+
+@pytest.fixture(scope="module")
+def panoramas(tmp_path_factory) -> list[ImageEntry]:
+    root = tmp_path_factory.mktemp("dagger_panoramas")
+    entries = []
+    for i in range(6):
+        path = root / f"pano_{i}.png"
+        cv2.imwrite(str(path), colour_panorama(300 + i))
+        entries.append(ImageEntry(str(path), "wheel"))
+    return entries
+
+
+def make_env(images, num_envs: int, size: int, pitch_bound: int, max_steps: int, source) -> FindViewEnv:
+    bank = PanoramaBank("cpu", prefetch_workers=0, max_panoramas=len(images), min_slots=num_envs)
+    sim = Simulator(bank, fov=90, height=size, width=size, pitch_bound=max(pitch_bound, 1))
+    return FindViewEnv(sim, source, num_envs, max_steps=max_steps, pitch_bound=pitch_bound)
+
+
+def sampled_env(images, num_envs: int, size: int, pitch_bound: int, max_steps: int, seed: int) -> FindViewEnv:
+    sampler = EpisodeSampler(images, 90, seed=seed, pitch_bound=pitch_bound, max_steps=max_steps)
+    return make_env(images, num_envs, size, pitch_bound, max_steps, SampledEpisodeSource(sampler, level=1))
+
+
+def test_rollout_labels_and_oracle_only_rollout_finishes_episodes_perfectly(panoramas) -> None:
+    """beta = 1: every executed action is the label, so every finished episode is a perfect stop."""
+    torch.manual_seed(0)
+    env = sampled_env(panoramas, 4, 32, 20, 200, seed=5)
+    policy = Policy(32, 32, variant="correlation", hidden_size=16)
+    cfg = DAggerConfig(rollout_steps=24, seq_len=8, buffer_size=1000, batch_sequences=4, beta_end=1.0)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=10)
+    trainer.start()
+    records = []
+    for _ in range(3):
+        stats = trainer.train_update()
+        records += stats["episodes"]
+    assert stats["oracle_share"] == 1.0 and stats["beta"] == 1.0
+    assert stats["update"] == 3 and stats["env_steps"] == 3 * 24 * 4
+    assert records and all(r["called_stop"] and r["eps"] == 0 and r["steps"] == r["shortest_path"] for r in records)
+    assert len(trainer.buffer) == 3 * 3 * 4  # 3 updates x 3 chunks x 4 envs
+    # label sets: never empty, STOP only alone
+    labels = trainer.buffer.labels[: len(trainer.buffer)].flatten(0, 1)
+    assert labels.any(dim=1).all()
+    assert (labels[labels[:, STOP]].sum(dim=1) == 1).all()
+    for key in ("policy_loss", "accuracy", "entropy", "grad_norm", "lr", "rollout_agreement", "buffer_steps"):
+        assert np.isfinite(stats[key]), key
+
+
+def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True):
+    """A small DAgger run (correlation policy, aux loss on, set labels, tiny FIFO buffer that wraps, curriculum);
+    resumes from ``state`` when given."""
+    torch.manual_seed(0)
+    env = sampled_env(images, 3, 32, 30, 120, seed=11)
+    policy = Policy(32, 32, variant="correlation", hidden_size=16)
+    cfg = DAggerConfig(
+        rollout_steps=8, seq_len=4, buffer_size=24, batch_sequences=3, epochs=2.0, beta_decay_updates=3,
+        aux_coef=0.5 if aux else 0.0, sample_actions=True, stop_weight=2.0, linear_decay=True, labels="set",
+    )
+    levels: list[int] = []
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=6, scheduler=DifficultyScheduler(6), set_level=lambda k: (
+        levels.append(k), setattr(env.source, "level", k)))
+    if state is None:
+        trainer.start()
+    else:
+        trainer.load_state_dict(state)
+    for _ in range(updates):
+        trainer.train_update()
+    return trainer, levels
+
+
+def test_exact_resume_half_plus_half_equals_one_run(panoramas) -> None:
+    """6 updates in one go == 3 updates, an abandoned 4th (stop request), save, load, 3 more."""
+    straight, levels = dagger_run(panoramas, 6)
+    assert levels == [1, 2, 3]
+    first, _ = dagger_run(panoramas, 3)
+    calls = iter(range(100))
+    with pytest.raises(UpdateAbandoned):  # a stop request in the middle of the 4th rollout
+        first.train_update(should_stop=lambda: next(calls) >= 5)
+    blob = io.BytesIO()
+    torch.save(first.state_dict(), blob)
+    blob.seek(0)
+    state = torch.load(blob, weights_only=True)
+    resumed, _ = dagger_run(panoramas, 3, state=state)
+    assert resumed.update == straight.update == 6 and resumed.env_steps == straight.env_steps
+    for (name, a), b in zip(straight.policy.state_dict().items(), resumed.policy.state_dict().values()):
+        assert torch.equal(a, b), name
+    assert all(torch.equal(a, b) for a, b in zip(straight.aux_head.parameters(), resumed.aux_head.parameters()))
+    assert torch.equal(straight.buffer.labels, resumed.buffer.labels)
+    assert torch.equal(straight.env.yaw, resumed.env.yaw)
+
+
+def test_resume_rejects_a_different_model_or_trainer(panoramas) -> None:
+    trainer, _ = dagger_run(panoramas, 1, aux=False)
+    state = trainer.state_dict()
+    env = sampled_env(panoramas, 3, 32, 30, 120, seed=11)
+    with pytest.raises(ValueError, match="hidden_size is 16 in the checkpoint but 8"):
+        DAggerTrainer(env, Policy(32, 32, variant="correlation", hidden_size=8), trainer.cfg, 6).load_state_dict(state)
+    with pytest.raises(ValueError, match="not saved by the DAgger trainer"):
+        trainer.load_state_dict({"signature": state["signature"], "policy": state["policy"]})
+
+
+def run_greedy(env: FindViewEnv, policy: Policy | None, seed: int = 0) -> list[dict]:
+    """Greedy policy (or uniform random actions when ``policy`` is None) until the static source ends."""
+    g = torch.Generator().manual_seed(seed)
+    obs = env.reset()
+    hidden = None if policy is None else policy.initial_hidden(env.num_envs)
+    records: list[dict] = []
+    with torch.no_grad():
+        while bool(env.active.any()):
+            if policy is None:
+                actions = torch.randint(0, 5, (env.num_envs,), generator=g)
+            else:
+                masks = (~env.new_episode).float()
+                actions, _, _, hidden = policy.act(obs, hidden, masks, deterministic=True)
+            obs, _, _, infos = env.step(actions)
+            records += [i for i in infos if i is not None]
+    return records
+
+
+def test_dagger_learns_a_trivial_world(panoramas) -> None:
+    """Yaw-only colour wheels, easy starts, 32x32 views: a few thousand labelled steps give a greedy
+    agent that ends far closer to the target than a random one, on episodes of a held-out seed."""
+    torch.manual_seed(0)
+    size, max_steps = 32, 80
+    env = sampled_env(panoramas, 8, size, 0, max_steps, seed=3)
+    policy = Policy(size, size, variant="correlation", hidden_size=32)
+    cfg = DAggerConfig(
+        lr=2e-3, rollout_steps=16, seq_len=8, buffer_size=4096, batch_sequences=16, epochs=4.0, beta_decay_updates=10
+    )
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=30)
+    trainer.start()
+    for _ in range(30):
+        trainer.train_update()
+
+    sampler = EpisodeSampler(panoramas, 90, seed=777, pitch_bound=0, max_steps=max_steps)
+    episodes = [sampler.sample("easy") for _ in range(24)]
+    start_eps = float(np.mean([l1_distance(e.init_pitch, e.init_yaw, e.target_pitch, e.target_yaw) for e in episodes]))
+    static = lambda: make_env(panoramas, 8, size, 0, max_steps, StaticEpisodeSource(episodes))  # noqa: E731
+    trained = aggregate(run_greedy(static(), policy))
+    random_agent = aggregate(run_greedy(static(), None))
+    print(f"\nDAgger greedy eps {trained['eps']:.2f} stop {trained['omega_stop']:.2f} | "
+          f"random {random_agent['eps']:.2f} "
+          f"| stop at once {start_eps:.2f}")
+    assert trained["episodes"] == 24
+    assert trained["eps"] < 0.35 * random_agent["eps"]
+    assert trained["eps"] < 0.35 * start_eps
