@@ -37,6 +37,8 @@ def error_of(config_name: str, overrides: list[str]) -> str:
         ("train", ["trainer=dagger"]),
         ("train", ["+experiment=quickstart"]),
         ("train", ["+experiment=cpu_small"]),
+        ("train", ["+experiment=imitate"]),
+        ("train", ["+experiment=reinforce"]),
         ("train", ["sim=fov60", "corruption.name=weather", "corruption.severity=[1,3]"]),
         ("eval", []),
         *[("eval", [f"agent={a}"]) for a in ("random", "oracle", "orb", "sift", "rotation", "ppo")],
