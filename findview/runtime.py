@@ -3,16 +3,16 @@
 Why: torch runs its CPU kernels in an OpenMP thread team. By default (GNU OpenMP, the runtime of
 the torch wheels on Linux) the team's threads *spin-wait* between parallel regions. When other
 processes compete for the cores, a spinning thread holds a core the next region's threads need, and
-a handful of tiny torch ops on one 256x256 view (the agents' RGB -> gray conversion) went from
-0.06 ms to 27 ms per call on a 2-core machine (see ``benchmarks/RESULTS.md``, "CPU load immunity").
+a handful of tiny torch ops on one 256x256 view (the agents' former RGB -> gray conversion) cost
+milliseconds to a hundred milliseconds per call instead of a fraction of a millisecond.
 
 The policy (documented defaults, each overridable):
 
 1. ``OMP_WAIT_POLICY=PASSIVE``: OpenMP threads sleep instead of spinning when idle. The OpenMP
    runtime reads this variable once, when torch loads it, so it must be in the environment *before*
    ``import torch``: ``import findview`` sets it (``os.environ.setdefault``, so a value the user
-   exported wins) when torch is not imported yet; every ``tools/*.py`` script imports ``findview``
-   first. Setting it after torch was imported has no effect (measured: same spin-wait cost);
+   exported wins) when torch is not imported yet; the tools in ``tools/`` import ``findview``
+   before torch. Setting it after torch was imported has no effect (measured: same spin-wait cost);
    :func:`configure_threads` then warns if it is asked for more than one torch thread.
    The variable is inherited by child processes (data workers, subprocess-based tools).
 2. ``torch.set_num_threads(1)`` unless a tool is given another count (``torch_threads`` in the
@@ -30,9 +30,10 @@ config's ``torch_threads`` (steps 2 and 3); code using findview as a library cal
 (``configure_threads()`` for the defaults). GPU runs are unaffected: the policy only concerns
 host-side torch ops.
 
-Measured on a 2-core machine (``benchmarks/RESULTS.md``): the RGB -> gray conversion of one 256x256
-view costs 40 ms per call (median) with torch's defaults (2 threads, spin-waiting) next to other jobs,
-0.5 ms with this policy.
+Measured on a 2-core machine shared with other jobs (``benchmarks/RESULTS.md``, "CPU load immunity"):
+the torch RGB -> gray conversion of one 256x256 view took 103 ms per call (median) with torch's
+defaults (2 threads, spin-waiting), 0.7 ms with PASSIVE set by ``import findview``, 0.5 ms on 1 thread;
+setting PASSIVE after ``import torch`` changed nothing (104 ms).
 """
 
 from __future__ import annotations

@@ -256,7 +256,7 @@ def test_multirun_and_collect_results(folder_ds, tmp_path):
     assert values[0] == 20.0 and math.isinf(values[1])
 
     tuned, table = tmp_path / "orb_tuned_folder.yaml", tmp_path / "table.md"
-    proc = check(run_tool("collect_results.py", str(sweep), f"out={tuned}", f"table={table}"))
+    proc = check(run_tool("collect_results.py", str(sweep), f"out={tuned}", f"table={table}", "allow_test_tuning=true"))
     text = table.read_text()
     assert "| difficulty | agent | 20 | inf |" in text
     assert "| easy | orb |" in text and "**" in text
@@ -269,13 +269,13 @@ def test_multirun_and_collect_results(folder_ds, tmp_path):
     assert "orb" in proc.stdout
 
     # the tuned config composes as an agent config (inherits orb.yaml, overrides d_thresh.easy)
-    from hydra import compose, initialize_config_dir
+    from findview_baselines.cli import compose_config, validate_config
 
     extra = tmp_path / "extra_configs" / "agent"
     extra.mkdir(parents=True)
     (extra / "orb_tuned_folder.yaml").write_text(tuned.read_text())
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "configs")):
-        c = compose("eval", overrides=[f"hydra.searchpath=[file://{extra.parent}]", "agent=orb_tuned_folder"])
+    c = compose_config("eval", [f"hydra.searchpath=[file://{extra.parent}]", "agent=orb_tuned_folder"])
+    validate_config(c)  # the tuned file is checked against the agent schema like any other
     assert c.agent.name == "orb" and c.agent.n_features == 500
     assert float(c.agent.d_thresh.easy) == float(cfg.d_thresh.easy) and math.isinf(float(c.agent.d_thresh.hard))
 

@@ -1,4 +1,4 @@
-"""Perspective rendering from equirectangular panoramas (SPEC section 1)."""
+"""Perspective rendering from equirectangular panoramas (the mapping of docs/TASK.md)."""
 
 from findview.sim.bank import PanoramaBank
 from findview.sim.equi2pers import MODES, camera_rays, equi2pers, pitch_grid

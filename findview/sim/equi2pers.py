@@ -1,4 +1,4 @@
-"""Perspective views from equirectangular panoramas (SPEC section 1), batched and device-agnostic.
+"""Perspective views from equirectangular panoramas (the mapping of docs/TASK.md), batched and device-agnostic.
 
 The mapping, used by every renderer in findview:
 
@@ -25,7 +25,7 @@ import torch
 
 from findview.geometry import focal_length
 
-__all__ = ["equi2pers", "camera_rays", "pitch_grid", "sample_points", "sample_equirect", "MODES"]
+__all__ = ["equi2pers", "camera_rays", "pitch_grid", "yaw0_points", "sample_points", "sample_equirect", "MODES"]
 
 MODES = ("bilinear", "nearest", "bicubic")
 
@@ -175,6 +175,37 @@ def _cached_rays(height: int, width: int, fov: float, device, dtype) -> torch.Te
     return rays
 
 
+def yaw0_points(
+    pitch: float, fov: float, height: int, width: int, equi_height: int, device=None, dtype=torch.float32
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample points ``(u, v)`` of one view at ``pitch`` degrees and yaw 0, each ``(height, width)`` in
+    ``dtype``: ``u`` wrapped into ``[0, We)``, ``v`` clamped to ``[0, He - 1]`` (pixel units).
+
+    Uncached; about 1 ms for 256x256 in float32 on one CPU thread. The camera ray of row ``j`` has
+    ``y, z`` that depend on the row only, so the pitch rotation runs on ``(height, 1)`` columns and only
+    the yaw-0 terms, the norm and the two inverse trigonometric functions run per pixel. Every operation
+    is the same IEEE operation on the same values as the full ``(H, W, 3)`` rotation of :func:`_lonlat`
+    (broadcasting changes no rounding), so the points are bitwise those of the full computation.
+    """
+    rays = _cached_rays(height, width, fov, device, dtype)
+    x = rays[0, :, 0][None, :]  # (1, W): x depends on the column only
+    y = rays[:, 0, 1][:, None]  # (H, 1): y depends on the row only
+    z = rays[:, 0, 2][:, None]  # (H, 1): ones
+    zero = torch.zeros(1, 1, dtype=dtype, device=device)
+    p = torch.deg2rad(torch.full((1, 1), float(pitch), dtype=dtype, device=device))
+    w = torch.deg2rad(zero)
+    cp, sp, cw, sw = torch.cos(p), torch.sin(p), torch.cos(w), torch.sin(w)
+    y1 = y * cp + z * sp  # (H, 1)
+    z1 = -y * sp + z * cp  # (H, 1)
+    x2 = x * cw + z1 * sw  # (H, W)
+    z2 = -x * sw + z1 * cw  # (H, W)
+    norm = torch.sqrt(x2 * x2 + y1 * y1 + z2 * z2)
+    lon = torch.atan2(x2, z2)
+    lat = torch.asin((y1 / norm).clamp(-1.0, 1.0))
+    u, v = _lonlat_to_uv(lon, lat, equi_height)
+    return torch.remainder(u, 2 * equi_height).to(dtype), v.clamp(0, equi_height - 1).to(dtype)
+
+
 def sample_points(
     pitch: torch.Tensor, fov: float, height: int, width: int, equi_height: int, dtype=torch.float32, stack: bool = True
 ):
@@ -185,18 +216,13 @@ def sample_points(
     all trigonometry; other pitches are computed on the fly in ``dtype``.
     """
     device = pitch.device
-    We = 2 * equi_height
     out_u, out_v = [], []
     for p in pitch.reshape(-1).tolist():
         key = (float(p), float(fov), int(height), int(width), int(equi_height), str(device))
         cacheable = float(p).is_integer() and dtype == torch.float32
         hit = _GRID_CACHE.get(key) if cacheable else None
         if hit is None:
-            rays = _cached_rays(height, width, fov, device, dtype)
-            pt = torch.tensor([float(p)], dtype=dtype, device=device)
-            lon, lat = _lonlat(rays, pt, torch.zeros_like(pt))
-            u, v = _lonlat_to_uv(lon[0], lat[0], equi_height)
-            hit = (torch.remainder(u, We).to(dtype), v.clamp(0, equi_height - 1).to(dtype))
+            hit = yaw0_points(float(p), fov, height, width, equi_height, device=device, dtype=dtype)
             if cacheable:
                 _GRID_CACHE[key] = hit
                 if len(_GRID_CACHE) > _GRID_CACHE_SIZE:

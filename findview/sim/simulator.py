@@ -1,11 +1,15 @@
 """The batched renderer used by the FindView task.
 
-Rotations are integer degrees, so the simulator precomputes one sampling grid per pitch in
+Rotations are integer degrees, so the simulator keeps one sampling grid per pitch in
 ``[-pitch_bound, pitch_bound]`` and renders any yaw as a horizontal shift of that grid by
 ``yaw / 360 * We`` panorama columns (exact: yaw only adds to the longitude). All envs' views are
 rendered in one call from the panorama bank's slots.
 
-Two backends implement the same SPEC section 1 mapping:
+Grids are built lazily, the first time a pitch is rendered (about 1 ms each at 256x256 on one
+CPU thread, always computed on the CPU in float32 so that every device samples the same points):
+the first reset of 16 envs builds at most 32 of the 121 grids instead of all of them.
+
+Two backends implement the same mapping (docs/TASK.md):
 
 - ``opencv`` (CPU default for bilinear / nearest): ``cv2.remap`` per view with ``BORDER_WRAP``,
   SIMD fixed-point sampling (sample points quantised to 1/32 pixel).
@@ -22,7 +26,7 @@ import numpy as np
 import torch
 
 from findview.sim.bank import PanoramaBank
-from findview.sim.equi2pers import MODES, _wrapped, sample_equirect, sample_points, to_output_dtype
+from findview.sim.equi2pers import MODES, _wrapped, sample_equirect, to_output_dtype, yaw0_points
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +64,8 @@ class Simulator:
         bank: decoded panoramas (its ``equi_height`` is fixed at the first load).
         fov: horizontal field of view, degrees.
         height, width: view size, pixels.
-        pitch_bound: largest ``|pitch|`` ever rendered, degrees (grids are precomputed up to it).
+        pitch_bound: largest ``|pitch|`` ever rendered, degrees (one grid per integer pitch up to it,
+            each built on first use).
         mode: ``bilinear`` | ``nearest`` | ``bicubic``.
         backend: ``auto`` | ``opencv`` | ``torch`` (see module docstring).
     """
@@ -91,19 +96,53 @@ class Simulator:
             raise ValueError("sim.backend=opencv needs sim.device=cpu and mode bilinear or nearest")
         self.backend = backend
         self._grids_for: int | None = None  # equi height the grids were built for
+        self._built: list[bool] = []  # per pitch index (pitch + pitch_bound): grid built
+        self._n_built = 0
 
     # ------------------------------------------------------------------ grids
-    def _build_grids(self, He: int) -> None:
-        pitches = torch.arange(-self.pitch_bound, self.pitch_bound + 1, dtype=torch.float32)
-        u, v = sample_points(pitches, self.fov, self.height, self.width, He)  # (P, H, W) float32, u in [0, We)
+    @property
+    def grids_built(self) -> int:
+        """How many per-pitch grids exist (they are built on first use of each pitch)."""
+        return self._n_built
+
+    def _reset_grids(self, He: int) -> None:
+        """Forget the grids (a new panorama height): storage for all pitches, none built."""
+        P = 2 * self.pitch_bound + 1
         if self.backend == "opencv":
-            self._u_np = u.numpy()
-            self._v_np = v.numpy()
+            self._u_np: list[np.ndarray | None] = [None] * P
+            self._v_np: list[np.ndarray | None] = [None] * P
         else:
-            P = pitches.numel()
-            self._u = u.reshape(P, -1).to(self.device, torch.float32)
-            self._v = v.reshape(P, -1).to(self.device, torch.float32)
+            HW = self.height * self.width
+            self._u = torch.zeros((P, HW), dtype=torch.float32, device=self.device)
+            self._v = torch.zeros((P, HW), dtype=torch.float32, device=self.device)
+        self._built = [False] * P
+        self._n_built = 0
         self._grids_for = He
+
+    def _ensure_grids(self, pidx: list[int], He: int) -> None:
+        """Build the grids of the pitch indices ``pidx`` (``pitch + pitch_bound``) not built yet."""
+        if self._grids_for != He:
+            self._reset_grids(He)
+        if self._n_built == len(self._built):
+            return
+        missing = sorted({p for p in pidx if not self._built[p]})
+        if not missing:
+            return
+        grids = [yaw0_points(float(p - self.pitch_bound), self.fov, self.height, self.width, He) for p in missing]
+        if self.backend == "opencv":
+            for p, (u, v) in zip(missing, grids):
+                self._u_np[p], self._v_np[p] = u.numpy(), v.numpy()
+        else:
+            idx = torch.tensor(missing, dtype=torch.long, device=self.device)
+            self._u.index_copy_(0, idx, torch.stack([g[0].reshape(-1) for g in grids]).to(self.device))
+            self._v.index_copy_(0, idx, torch.stack([g[1].reshape(-1) for g in grids]).to(self.device))
+        for p in missing:
+            self._built[p] = True
+        self._n_built += len(missing)
+
+    def build_all_grids(self, equi_height: int) -> None:
+        """Build every pitch's grid now (e.g. before timing steps) for panoramas ``equi_height`` high."""
+        self._ensure_grids(list(range(2 * self.pitch_bound + 1)), int(equi_height))
 
     # ----------------------------------------------------------------- render
     def new_buffer(self, n: int) -> torch.Tensor:
@@ -125,8 +164,6 @@ class Simulator:
         """Write the views of ``slots, pitch, yaw (n,)`` into ``out[rows]`` (``out``: ``(N, H, W, 3)`` uint8)."""
         assert self.bank.slots is not None, "acquire a panorama from the bank before rendering"
         He = self.bank.slots.shape[1]
-        if self._grids_for != He:
-            self._build_grids(He)
         if int(slots.shape[0]) == 0:
             return
         if self.backend == "opencv":
@@ -143,6 +180,7 @@ class Simulator:
     def _render_opencv(self, out, rows, slots, pitch, yaw, He: int) -> None:
         We = 2 * He
         pidx = self._pitch_index(pitch).tolist()
+        self._ensure_grids(pidx, He)
         shift = (yaw.to(torch.float32) * (We / 360.0)).tolist()
         slot_l = slots.tolist()
         bank = self.bank.slots.numpy()
@@ -155,6 +193,8 @@ class Simulator:
     def _render_torch(self, out, rows, slots, pitch, yaw, He: int) -> None:
         We = 2 * He
         pidx = self._pitch_index(pitch.to(self.device))
+        if self._grids_for != He or self._n_built < len(self._built):
+            self._ensure_grids(torch.unique(pidx).tolist(), He)  # one host sync until all are built
         u = self._u[pidx] + (yaw.to(self.device, torch.float32) * (We / 360.0))[:, None]
         v = self._v[pidx]
         flat = self.bank.slots.view(-1, 3)

@@ -1,0 +1,211 @@
+"""tools/collect_results.py on synthetic multirun folders: runs that differ in a setting are never merged,
+tuned configs only come from validation runs, and the corruption tables (paper Tables 8-11) average eps
+over the difficulties in the paper's column order."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from findview_baselines.evaluation.results import (
+    CORRUPTION_CATEGORIES,
+    CollectError,
+    corruption_of,
+    corruption_table,
+    find_runs,
+    group_runs,
+    threshold_table,
+    tuned_thresholds,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def collect():
+    """``tools/collect_results.py``'s ``main`` (in process: fast)."""
+    spec = importlib.util.spec_from_file_location("collect_results_tool", REPO / "tools" / "collect_results.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.main
+
+
+def metrics(eps: float, spl: float = 0.5) -> dict:
+    return {"eps": eps, "omega_stop": 1.0, "omega_perf": 0.5, "spl": spl, "episodes": 4}
+
+
+def fake_run(
+    root: Path, name: str, eps: dict[str, float], agent: str = "orb", d_thresh=20, fov: int = 90, split: str = "val",
+    difficulty: str | None = None, meta: dict | None = None, spl: dict[str, float] | None = None, **extra,
+) -> Path:
+    """A finished tools/eval.py run folder: .hydra/config.yaml (JSON is YAML), summary.json, run.json."""
+    d = root / name
+    (d / ".hydra").mkdir(parents=True)
+    cfg = {
+        "agent": {"name": agent, "d_thresh": d_thresh, "threads": 4, **extra.pop("agent_extra", {})},
+        "dataset": {"name": "toy", "out_dir": "/data/toy"},
+        "sim": {"fov": fov, "height": 64, "width": 64, "device": "cpu"},
+        "split": split, "difficulty": difficulty, "episodes": None, "seed": 0, "progress": False,
+        "num_envs": extra.pop("num_envs", 16), **extra,
+    }
+    (d / ".hydra" / "config.yaml").write_text(json.dumps(cfg))
+    summary = {k: metrics(v, (spl or {}).get(k, 0.5)) for k, v in eps.items()}
+    summary["runtime"] = {"agent_fps": 1.0, "env_fps": 1.0}
+    (d / "summary.json").write_text(json.dumps(summary))
+    (d / "run.json").write_text(json.dumps({"agent": agent, "dataset": "toy", "split": split, **(meta or {})}))
+    return d
+
+
+def table_rows(text: str, title_part: str) -> list[str]:
+    """The body rows of the markdown table whose title contains ``title_part``."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("## ") and title_part in line)
+    rows = []
+    for line in lines[start + 4 :]:
+        if not line.startswith("|"):
+            break
+        rows.append(line)
+    return rows
+
+
+# ------------------------------------------------------------------------------ threshold layout
+def test_fov_sweep_gives_one_table_per_fov(tmp_path, collect, capsys):
+    """-m sim=fov90,fov60: the FoV 60 runs must not overwrite the FoV 90 cells."""
+    for fov, base in ((90, 1.0), (60, 7.0)):
+        fake_run(tmp_path, f"{fov}_a", {"easy": base}, d_thresh=20, fov=fov, num_envs=8)
+        fake_run(tmp_path, f"{fov}_b", {"easy": base + 2}, d_thresh="inf", fov=fov)
+    runs = find_runs(tmp_path)
+    assert len(runs) == 4
+    groups = group_runs(runs)
+    assert [g.context for g in groups] == [(("sim.fov", "60"),), (("sim.fov", "90"),)]  # num_envs does not split
+    text = threshold_table(runs)
+    assert table_rows(text, "sim.fov=90") == ["| easy | orb | **1.00** | 3.00 |"]
+    assert table_rows(text, "sim.fov=60") == ["| easy | orb | **7.00** | 9.00 |"]
+    # one tuned config per FoV, named after it; out= (one file) cannot hold both: one line, status 2
+    best = tuned_thresholds(runs)
+    assert {k: v[0] for k, v in best.items()} == {("orb", "toy", "fov60"): {"easy": 20.0}, ("orb", "toy", "fov90"): {"easy": 20.0}}
+    out = tmp_path / "tuned.yaml"
+    assert collect([str(tmp_path), f"out={out}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "orb/toy/fov60" in err[0] and not out.exists()
+    assert (tmp_path / "thresholds.md").is_file()  # the tables are still written
+    assert collect([str(tmp_path), "write_config=false"]) == 0
+
+
+def test_every_differing_setting_splits(tmp_path):
+    """Corruption severity, checkpoint and episode file each tell tables apart; agent settings tell rows apart."""
+    fake_run(tmp_path, "a", {"hard": 1.0}, meta={"corruption": "fog", "severity": 1})
+    fake_run(tmp_path, "b", {"hard": 2.0}, meta={"corruption": "fog", "severity": 3})
+    fake_run(tmp_path, "c", {"hard": 3.0}, meta={"corruption": "fog", "severity": 3}, agent_extra={"n_features": 1000})
+    text = threshold_table(find_runs(tmp_path))
+    assert table_rows(text, "severity=1") == ["| hard | orb | **1.00** |"]
+    assert table_rows(text, "severity=3") == ["| hard | orb (agent.n_features=1000) | **3.00** |", "| hard | orb (agent.n_features=<unset>) | **2.00** |"]
+
+    other = tmp_path / "ckpt"
+    fake_run(other, "a", {"hard": 1.0}, agent="ppo", d_thresh=None, checkpoint="runs/a/best.pth")
+    fake_run(other, "b", {"hard": 5.0}, agent="ppo", d_thresh=None, checkpoint="runs/b/best.pth")
+    assert [g.context for g in group_runs(find_runs(other))] == [(("checkpoint", "runs/a/best.pth"),), (("checkpoint", "runs/b/best.pth"),)]
+
+
+def test_duplicate_cells_are_reported(tmp_path):
+    fake_run(tmp_path, "0", {"easy": 1.0})
+    fake_run(tmp_path, "1", {"easy": 4.0})
+    warnings: list[str] = []
+    text = threshold_table(find_runs(tmp_path), warn=warnings.append)
+    assert len(warnings) == 1 and str(tmp_path / "0") in warnings[0] and str(tmp_path / "1") in warnings[0]
+    assert table_rows(text, "toy / val") == ["| easy | orb | **4.00** |"]
+
+
+def test_tuned_config_refuses_test_split(tmp_path, collect, capsys):
+    fake_run(tmp_path, "0", {"easy": 3.0, "hard": 1.0}, d_thresh=10, split="test")
+    fake_run(tmp_path, "1", {"easy": 2.0, "hard": 4.0}, d_thresh="inf", split="test")
+    out = tmp_path / "orb_tuned.yaml"
+    assert collect([str(tmp_path), f"out={out}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "split test" in err[0] and "allow_test_tuning=true" in err[0]
+    assert not out.exists()
+    with pytest.raises(CollectError):
+        tuned_thresholds(find_runs(tmp_path))
+    # asked explicitly: written, lowest eps per difficulty
+    assert collect([str(tmp_path), f"out={out}", "--allow-test-tuning"]) == 0
+    text = out.read_text()
+    assert "easy: .inf" in text and "hard: 10" in text and "test episodes" in text
+
+
+def test_validation_runs_decide(tmp_path, collect):
+    """With val and test runs in one folder, the tuned config comes from val (whatever test says)."""
+    fake_run(tmp_path, "v10", {"easy": 5.0}, d_thresh=10, split="val")
+    fake_run(tmp_path, "v30", {"easy": 1.0}, d_thresh=30, split="val")
+    fake_run(tmp_path, "t10", {"easy": 0.5}, d_thresh=10, split="test")
+    fake_run(tmp_path, "t30", {"easy": 9.0}, d_thresh=30, split="test")
+    best = tuned_thresholds(find_runs(tmp_path))
+    assert {k: v[0] for k, v in best.items()} == {("orb", "toy", ""): {"easy": 30.0}}
+    out = tmp_path / "t.yaml"
+    assert collect([str(tmp_path), f"out={out}"]) == 0
+    assert "easy: 30" in out.read_text()
+
+
+def test_tie_on_eps_goes_to_higher_spl_then_smaller_threshold(tmp_path):
+    fake_run(tmp_path, "0", {"easy": 2.0, "hard": 1.0}, d_thresh=10, spl={"easy": 0.2, "hard": 0.5})
+    fake_run(tmp_path, "1", {"easy": 2.0, "hard": 1.0}, d_thresh=40, spl={"easy": 0.9, "hard": 0.5})
+    best = tuned_thresholds(find_runs(tmp_path))
+    assert best[("orb", "toy", "")][0] == {"easy": 40.0, "hard": 10.0}
+
+
+# ------------------------------------------------------------------------------ corruption layout
+def test_corruption_of_defaults_and_sources():
+    assert corruption_of({}, {}) == ("none", 0)
+    assert corruption_of({"corruption": {"name": "fog", "severity": 2}}, {}) == ("fog", 2)
+    assert corruption_of({"corruption": {"name": "fog", "severity": 2}}, {"corruption": "snow", "severity": 5}) == ("snow", 5)
+    assert corruption_of({"corruption": {"name": "none", "severity": 3}}, {}) == ("none", 0)
+
+
+def test_corruption_tables(tmp_path, collect):
+    """eps averaged over the difficulties (hand-computed), clear first, categories in the paper's order,
+    one row per agent, one table per severity."""
+    eps3 = lambda a, b, c: {"easy": a, "medium": b, "hard": c}  # noqa: E731
+    fake_run(tmp_path, "orb_clear", eps3(1, 2, 3), meta={"corruption": "none"}, d_thresh={"easy": 10, "hard": 30})
+    fake_run(tmp_path, "sift_clear", eps3(0, 0, 3), agent="sift", meta={"corruption": None})
+    fake_run(tmp_path, "orb_fog1", eps3(2, 4, 6), meta={"corruption": "fog", "severity": 1}, d_thresh={"easy": 10, "hard": 30})
+    fake_run(tmp_path, "orb_blur1", eps3(10, 20, 60), meta={"corruption": "motion_blur", "severity": 1}, d_thresh={"easy": 10, "hard": 30})
+    fake_run(tmp_path, "sift_fog1", eps3(3, 3, 3), agent="sift", meta={"corruption": "fog", "severity": 1})
+    fake_run(tmp_path, "orb_fog3", eps3(9, 9, 12), meta={"corruption": "fog", "severity": 3}, d_thresh={"easy": 10, "hard": 30})
+    # sift under jpeg at severity 3: one run per difficulty, medium missing
+    fake_run(tmp_path, "sift_jpeg3_e", {"easy": 4.0}, agent="sift", difficulty="easy", meta={"corruption": "jpeg_compression", "severity": 3})
+    fake_run(tmp_path, "sift_jpeg3_h", {"hard": 8.0}, agent="sift", difficulty="hard", meta={"corruption": "jpeg_compression", "severity": 3})
+    text = corruption_table(find_runs(tmp_path))
+    lines = text.splitlines()
+    i1 = lines.index(next(line for line in lines if "severity 1" in line))
+    assert lines[i1 + 2] == "| agent | clear | motion_blur | fog |"  # clear, then blur before weather
+    assert lines[i1 + 4] == "| *category* |  | *blur* | *weather* |"
+    assert table_rows(text, "severity 1")[1:] == ["| orb | 2.00 | 30.00 | 4.00 |", "| sift | 1.00 | - | 3.00 |"]
+    assert table_rows(text, "severity 3")[1:] == ["| orb | 2.00 | - | 10.00 |", "| sift | 1.00 | 6.00* | - |"]
+    assert lines[next(i for i, line in enumerate(lines) if "severity 3" in line) + 2] == "| agent | clear | jpeg_compression | fog |"
+    assert collect([str(tmp_path), "layout=corruption"]) == 0
+    assert (tmp_path / "corruptions.md").read_text().count("## ") == 2
+
+
+def test_corruption_column_order_is_the_papers():
+    from findview_baselines.evaluation.results import corruption_columns
+
+    names = [n for members in CORRUPTION_CATEGORIES.values() for n in members]
+    cols = corruption_columns(list(reversed(names)) + ["none", "pixelate"])
+    assert [c for _, c in cols] == ["none", *names, "pixelate"]
+    assert [cat for cat, _ in cols[1:5]] == ["blur"] * 4 and cols[-1] == ("other", "pixelate")
+    assert len(names) == 16
+
+
+def test_cli_exit_status_in_a_subprocess(tmp_path):
+    """The real command line: test-split tuning refused with status 2 and one line on stderr."""
+    fake_run(tmp_path, "0", {"easy": 1.0}, split="test")
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "tools" / "collect_results.py"), str(tmp_path), f"out={tmp_path / 'x.yaml'}"],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "| easy | orb | **1.00** |" in proc.stdout
