@@ -23,6 +23,7 @@ from typing import Any, Optional
 from omegaconf import MISSING
 
 from findview_baselines.rl.dagger import DAggerConfig
+from findview_baselines.rl.ppo import PPOConfig
 
 from findview.config import (
     ConfigError,
@@ -178,9 +179,10 @@ POLICY_VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation")
 
 
 @dataclass
-class PPOAgentConfig:
-    """The learned agent: its network and the PPO hyper-parameters (paper section 4 and appendix;
-    docs/TASK.md, section PPO baseline)."""
+class PPOAgentConfig(PPOConfig):
+    """The learned agent: its network (below) and the PPO hyper-parameters (inherited from
+    :class:`findview_baselines.rl.ppo.PPOConfig`; paper section 4 and appendix, docs/TASK.md, section PPO
+    baseline)."""
 
     name: str = "ppo"
     """Agent name."""
@@ -188,36 +190,6 @@ class PPOAgentConfig:
     """Network: early_fusion (the paper's) | goal_encoder | siamese | correlation."""
     hidden_size: int = 512
     """Encoder feature size and GRU state size."""
-    aux_coef: float = 0.0
-    """Weight of the auxiliary loss (relative rotation regression + overlap classification); 0 = off."""
-    lr: float = 2.5e-4
-    """Adam learning rate."""
-    adam_eps: float = 1.0e-5
-    """Adam's epsilon (numerical floor of the denominator), not the localization error."""
-    clip: float = 0.2
-    """PPO ratio clip (also the value-loss clip)."""
-    value_coef: float = 0.5
-    """Value-loss weight."""
-    entropy_coef: float = 0.01
-    """Entropy-bonus weight."""
-    max_grad_norm: float = 0.5
-    """Gradient-norm clip."""
-    gamma: float = 0.99
-    """Discount per step."""
-    gae_lambda: float = 0.95
-    """GAE lambda."""
-    ppo_epochs: int = 4
-    """Passes over each rollout."""
-    num_mini_batches: int = 1
-    """Mini-batches per epoch (they split environments, so at most trainer.num_envs)."""
-    rollout_steps: int = 128
-    """Steps per environment per update."""
-    linear_decay: bool = True
-    """Decay lr and clip linearly to 0 over the run."""
-    clipped_value_loss: bool = True
-    """Clip the value loss like the policy ratio."""
-    normalize_advantage: bool = True
-    """Normalise advantages per mini-batch."""
     sample: bool = False
     """Draw actions from the policy at validation / evaluation time instead of taking the argmax."""
 

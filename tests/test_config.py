@@ -109,7 +109,7 @@ def _schemas() -> list[type]:
         for _, obj in inspect.getmembers(module, dataclasses.is_dataclass):
             if obj.__module__ == module.__name__:
                 out.append(obj)
-    return [*out, baseline_config.DAggerConfig]
+    return [*out, baseline_config.DAggerConfig, baseline_config.PPOConfig]
 
 
 def test_every_schema_field_has_a_docstring() -> None:

@@ -35,39 +35,46 @@ def linear_decay(initial: float, update: int, total_updates: int) -> float:
 
 @dataclass
 class PPOConfig:
-    """PPO hyper-parameters (the ``agent`` config group, ``configs/agent/ppo.yaml``)."""
+    """PPO hyper-parameters (the optimisation keys of the ``agent`` config group, ``configs/agent/ppo.yaml``;
+    :class:`findview_baselines.config.PPOAgentConfig` adds the network keys)."""
 
     lr: float = 2.5e-4
+    """Adam learning rate."""
     adam_eps: float = 1e-5
+    """Adam's epsilon (numerical floor of the denominator), not the localization error."""
     clip: float = 0.2
+    """PPO ratio clip (also the value-loss clip)."""
     value_coef: float = 0.5
+    """Value-loss weight."""
     entropy_coef: float = 0.01
+    """Entropy-bonus weight."""
     max_grad_norm: float = 0.5
+    """Gradient-norm clip."""
     gamma: float = 0.99
+    """Discount per step."""
     gae_lambda: float = 0.95
+    """GAE lambda."""
     ppo_epochs: int = 4
+    """Passes over each rollout."""
     num_mini_batches: int = 1
+    """Mini-batches per epoch (they split environments, so at most trainer.num_envs)."""
     rollout_steps: int = 128
+    """Steps per environment per update."""
     linear_decay: bool = True
+    """Decay lr and clip linearly to 0 over the run."""
     clipped_value_loss: bool = True
+    """Clip the value loss like the policy ratio."""
     normalize_advantage: bool = True
-    aux_coef: float = 0.0  # weight of the auxiliary rotation loss (0 = off: the paper's recipe)
-
-    @property
-    def eps(self) -> float:
-        """Adam epsilon (the former name of :attr:`adam_eps`)."""
-        return self.adam_eps
+    """Normalise advantages per mini-batch."""
+    aux_coef: float = 0.0
+    """Weight of the auxiliary loss (relative rotation regression + overlap classification); 0 = off (the
+    paper's recipe)."""
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "PPOConfig":
-        """Pick the known keys of a (Hydra / dict) agent config; other keys (name, variant, ...) are ignored.
-
-        The former key ``eps`` is read as ``adam_eps`` when ``adam_eps`` is absent."""
+        """Pick the known keys of a (Hydra / dict) agent config; other keys (name, variant, ...) are ignored."""
         known = {f.name for f in fields(cls)}
-        values = {k: cfg[k] for k in known if k in cfg}
-        if "adam_eps" not in values and "eps" in cfg:
-            values["adam_eps"] = cfg["eps"]
-        return cls(**values)
+        return cls(**{k: cfg[k] for k in known if k in cfg})
 
 
 def ppo_loss(
