@@ -134,7 +134,8 @@ class FeatureAgentConfig:
 
 @dataclass
 class RotationAgentConfig:
-    """Relative-rotation estimation from feature matches, then a straight walk (beyond the paper)."""
+    """The exact geometric agent (beyond the paper): relative-rotation estimates from feature matches, dead
+    reckoning, a colour check before every stop, a covering search of the sphere."""
 
     name: str = "rotation"
     """Agent name (make_agent key)."""
@@ -149,21 +150,31 @@ class RotationAgentConfig:
     inlier_px: float = 2.0
     """RANSAC inlier tolerance, pixels at the image centre."""
     ransac_iters: int = 200
-    """RANSAC iterations."""
-    min_inliers: int = 5
-    """Inliers needed to trust an estimate."""
+    """RANSAC hypotheses."""
+    min_inliers: int = 4
+    """Inliers needed to trust an estimate (a wrong one costs a detour: every stop is verified)."""
     pitch_bound: int = 60
     """Pitch clamp of the task, degrees (must match task.pitch_bound)."""
     pitch_tol: float = 10.0
     """Estimated absolute pitches beyond pitch_bound + pitch_tol are rejected, degrees."""
     reestimate_every: int = 4
-    """Moves between estimates while walking (and always on arrival)."""
-    sweep_check_every: int = 3
-    """Moves between estimate attempts while sweeping."""
+    """Fewest moves between estimates while walking to a candidate (always on arrival)."""
+    sweep_check_every: Optional[int] = None
+    """Moves between estimates while searching (null: round(fov / 8))."""
     sweep_pitch: Optional[float] = None
-    """Pitch change between sweep rows, degrees (null: fov / 2)."""
+    """Pitch between search rows, degrees (null: 0.8 x the vertical field of view)."""
+    search_scale: float = 0.5
+    """The search detects keypoints on views downsampled by this factor (1: full size)."""
     max_arrivals: int = 6
-    """Arrivals that still ask for moves before giving up with stop."""
+    """Arrivals that still ask for moves before the candidate is decided where it is."""
+    verify_thresh: float = 0.6
+    """Colour ZNCC of view and target (downsampled, blurred) needed to stop, in [-1, 1]."""
+    verify_chroma: float = 0.2
+    """Largest difference of the mean chromaticity r / (r + g + b) (any channel) to stop."""
+    refine: bool = True
+    """Hill-climb the colour score over one-degree neighbours when a verified candidate is not exact."""
+    reject_radius: int = 3
+    """Estimates within this many degrees (each axis) of a rejected candidate are ignored."""
     threads: int = 2
     """Environment slots processed in parallel."""
     cv2_threads: Optional[int] = 1
@@ -173,6 +184,9 @@ class RotationAgentConfig:
         check(self.detector in ("sift", "orb"), "agent.detector", self.detector, "sift | orb")
         check(0 < self.fov < 180, "agent.fov", self.fov, "a field of view in (0, 180) degrees")
         check(self.min_inliers >= 3, "agent.min_inliers", self.min_inliers, "at least 3 inliers")
+        check(0 < self.search_scale <= 1, "agent.search_scale", self.search_scale, "a factor in (0, 1]")
+        check(-1 <= self.verify_thresh <= 1, "agent.verify_thresh", self.verify_thresh, "a score in [-1, 1]")
+        check(self.reject_radius >= 0, "agent.reject_radius", self.reject_radius, "0 or more degrees")
 
 
 POLICY_VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation")

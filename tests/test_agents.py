@@ -14,7 +14,7 @@ from findview.episode import Episode
 from findview.geometry import l1_distance, wrap_yaw
 from findview.imageio import load_panorama
 from findview_baselines.agents import agent_names, make_agent
-from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, rgb_to_gray
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, host_images, rgb_to_gray
 from findview_baselines.agents.feature_matching import (
     FeatureMatchingAgent,
     detect,
@@ -25,10 +25,12 @@ from findview_baselines.agents.feature_matching import (
     vote_action,
 )
 from findview_baselines.agents.rotation import (
-    RotationEstimate,
     decompose_relative_rotation,
     estimate_from_images,
     kabsch,
+    mean_chromaticity,
+    photometric_score,
+    photometric_template,
 )
 
 FOV, H, W = 90.0, 256, 256
@@ -44,11 +46,13 @@ def _equi2pers():
     return equi2pers
 
 
-def render(equi: torch.Tensor, rotations: list[tuple[int, int]], fov: float = FOV) -> torch.Tensor:
-    """Views ``(B, 3, H, W)`` uint8 of ``equi (1, 3, He, We)`` at ``(pitch, yaw)`` degrees."""
+def render(
+    equi: torch.Tensor, rotations: list[tuple[int, int]], fov: float = FOV, h: int = H, w: int = W
+) -> torch.Tensor:
+    """Views ``(B, 3, h, w)`` uint8 of ``equi (1, 3, He, We)`` at ``(pitch, yaw)`` degrees."""
     p = torch.tensor([float(r[0]) for r in rotations], dtype=torch.float64)
     y = torch.tensor([float(r[1]) for r in rotations], dtype=torch.float64)
-    return _equi2pers()(equi.expand(len(rotations), -1, -1, -1), p, y, fov, H, W, mode="bilinear")
+    return _equi2pers()(equi.expand(len(rotations), -1, -1, -1), p, y, fov, h, w, mode="bilinear")
 
 
 @pytest.fixture(scope="module")
@@ -66,15 +70,22 @@ def ep(init=(0, 0), target=(0, 20), difficulty="easy", eid="t0") -> Episode:
 
 
 class TinyEnv:
-    """The task's move rules (SPEC section 2) on one panorama, rendering with equi2pers."""
+    """The task's move rules (docs/TASK.md) on one panorama, rendering with equi2pers.
 
-    def __init__(self, equi: torch.Tensor, episode: Episode, pitch_bound: int = 60) -> None:
-        self.equi, self.ep, self.bound = equi, episode, pitch_bound
+    ``corrupt`` (optional) maps the ``(1, 3, h, w)`` uint8 target to the one the agent sees.
+    """
+
+    def __init__(
+        self, equi: torch.Tensor, episode: Episode, pitch_bound: int = 60, size: tuple[int, int] = (H, W), corrupt=None
+    ) -> None:
+        self.equi, self.ep, self.bound, self.size = equi, episode, pitch_bound, size
         self.pitch, self.yaw, self.steps = episode.init_pitch, episode.init_yaw, 0
-        self.target = render(equi, [(episode.target_pitch, episode.target_yaw)])
+        self.target = render(equi, [(episode.target_pitch, episode.target_yaw)], FOV, *size)
+        if corrupt is not None:
+            self.target = corrupt(self.target)
 
     def obs(self) -> dict[str, torch.Tensor]:
-        return obs_of(render(self.equi, [(self.pitch, self.yaw)]), self.target)
+        return obs_of(render(self.equi, [(self.pitch, self.yaw)], FOV, *self.size), self.target)
 
     def step(self, a: int) -> bool:
         self.steps += 1
@@ -126,6 +137,7 @@ def test_agent_yaml_configs(repo_root: Path):
     for name in ("random", "oracle", "orb", "sift", "rotation"):
         cfg = OmegaConf.load(repo_root / "configs" / "agent" / f"{name}.yaml")
         assert cfg.name == name
+        cfg.pop("defaults", None)  # a Hydra directive (the schema the file extends), not an agent key
         agent = make_agent(name, cfg, 2, "cpu", 0)
         if name in ("orb", "sift"):
             assert agent.d_thresh == {"easy": math.inf, "medium": math.inf, "hard": math.inf, "default": math.inf}
@@ -233,6 +245,16 @@ def test_gray_matches_opencv():
     for k in range(2):
         ref = cv2.cvtColor(np.ascontiguousarray(img[k].permute(1, 2, 0).numpy()), cv2.COLOR_RGB2GRAY)
         assert np.array_equal(ours[k], ref)
+
+
+def test_host_images_one_copy_any_layout():
+    rng = np.random.default_rng(1)
+    nhwc = torch.from_numpy(rng.integers(0, 256, size=(4, 9, 11, 3), dtype=np.uint8))
+    obs = nhwc.permute(0, 3, 1, 2)  # the environment's layout: a channels-last buffer seen as NCHW
+    got = host_images(obs, [3, 1])
+    assert got.shape == (2, 3, 9, 11) and np.array_equal(got, obs[[3, 1]].numpy())
+    assert np.array_equal(host_images(obs), obs.numpy()) and host_images(obs).base is not None  # no copy
+    assert np.array_equal(rgb_to_gray(obs), rgb_to_gray(obs.contiguous()))
 
 
 @pytest.mark.parametrize("kind", ["orb", "sift"])
@@ -378,37 +400,160 @@ def test_rotation_agent_identical_and_flat(panos):
     assert sweep == [first[1]] * 20
 
 
-def test_rotation_policy_sweep_schedule():
-    agent = make_agent("rotation", {"fov": 90}, 1, "cpu", 0)
-    agent.reset([0], [ep()])
-    slot = agent.slots[0]
-    d = slot.sweep_dir
-    acts = [agent.decide(slot, RotationEstimate() if k % 3 == 0 else None) for k in range(360 + 45 + 360 + 90 + 5)]
-    assert acts[:360] == [d] * 360  # a full yaw turn at the start pitch
-    assert acts[360:405] == [UP] * 45  # then up by fov / 2
-    assert acts[405:765] == [d] * 360
-    assert acts[765:855] == [DOWN] * 90  # then to start - fov / 2
-    assert acts[855:] == [d] * 5
+def _play(env: TinyEnv, agent, max_steps: int, each=None) -> bool:
+    """Run one episode of ``agent`` (slot 0) in ``env``; returns whether it called STOP."""
+    for _ in range(max_steps):
+        a = int(agent.act(env.obs())[0])
+        if each is not None:
+            each(a)
+        if env.step(a):
+            return True
+    return False
 
 
-def test_rotation_policy_walk_and_stop_rules():
-    agent = make_agent("rotation", {"fov": 90, "reestimate_every": 100, "max_arrivals": 2}, 1, "cpu", 0)
+def _blur_noise_brighten(img: torch.Tensor) -> torch.Tensor:
+    """Gaussian blur (sigma 1.5 px), Gaussian noise (std 12 levels) and +35 brightness, plain torch ops."""
+    x = img.float()
+    k = torch.exp(-0.5 * (torch.arange(-4, 5, dtype=torch.float32) / 1.5) ** 2)
+    k = k / k.sum()
+    x = torch.nn.functional.pad(x, (4, 4, 4, 4), mode="replicate")
+    x = torch.nn.functional.conv2d(x, k.view(1, 1, 1, 9).expand(3, 1, 1, 9), groups=3)
+    x = torch.nn.functional.conv2d(x, k.view(1, 1, 9, 1).expand(3, 1, 9, 1), groups=3)
+    g = torch.Generator().manual_seed(0)
+    x = x + 12.0 * torch.randn(x.shape, generator=g) + 35.0
+    return x.round().clamp(0, 255).to(torch.uint8)
+
+
+def test_photometric_check(panos):
+    views = render(panos[PANOS[0]], [(5, 30), (5, 150)])
+    t = [photometric_template(v.numpy()) for v in views]
+    assert photometric_score(t[0], t[0]) == pytest.approx(1.0, abs=1e-5)  # the definition
+    bad = _blur_noise_brighten(views[:1])[0].numpy()
+    assert photometric_score(t[0], photometric_template(bad)) > 0.85
+    assert photometric_score(t[0], t[1]) < 0.5  # another part of the room
+    assert not photometric_template(np.full((3, 32, 32), 77, np.uint8)).any()  # flat: no structure
+    assert np.allclose(mean_chromaticity(np.full((3, 4, 4), 77, np.uint8)), 1 / 3)
+    # the agent's check: the corrupted view passes, the same wall in another colour does not
+    walls = render(two_walls_panorama(), [(0, 90), (0, -90)])
+    agent = make_agent("rotation", None, 1, "cpu", 0)
     agent.reset([0], [ep()])
     s = agent.slots[0]
-    good = lambda dp, dy: RotationEstimate(dpitch=dp, dyaw=dy, inliers=50, matches=60, valid=True)  # noqa: E731
-    # plan (-2, +3): the axis with more remaining moves first, every move exactly once
-    acts = [agent.decide(s, good(-2.2, 2.9))] + [agent.decide(s, None) for _ in range(4)]
-    assert sorted(acts) == sorted([DOWN, DOWN, RIGHT, RIGHT, RIGHT]) and acts[0] == RIGHT
-    # arrival: the check asks for one more move (1st arrival), then another (2nd arrival: give up)
-    assert agent.decide(s, good(0.2, -1.1)) == LEFT
-    assert agent.decide(s, good(0.0, 1.0)) == STOP
-    # arrival with an estimate that rounds to 0 -> STOP; arrival without a valid one after seeing the target
+    s.target = agent.prepare_target(s, views[0].numpy())
+    assert agent.verify(s, bad)[0] and not agent.verify(s, views[1].numpy())[0]
+    s.target = agent.prepare_target(s, walls[0].numpy())
+    assert agent.verify(s, walls[0].numpy()) == (True, pytest.approx(1.0, abs=1e-5))
+    assert not agent.verify(s, walls[1].numpy())[0]
+
+
+def two_walls_panorama() -> torch.Tensor:
+    """A 1024x512 panorama: a smooth grey surround and two walls with the same dark letters and shapes,
+    one red (centred at yaw +90, on the horizon), one blue (yaw -90)."""
+    h, w = 512, 1024
+    yy, xx = np.mgrid[0:h, 0:w]
+    pano = np.stack([100 + 40 * yy / h, 110 + 0 * xx, 120 - 30 * yy / h], axis=-1).astype(np.uint8)
+    rng = np.random.default_rng(3)
+    patch = np.zeros((180, 220), np.uint8)  # 1 where the pattern is dark
+    letters = "FINDVIEWQRST2468"
+    for k in range(14):
+        org = (int(rng.integers(5, 180)), int(rng.integers(25, 175)))
+        cv2.putText(patch, letters[k % len(letters)], org, cv2.FONT_HERSHEY_SIMPLEX, 1.2, 1, 3)
+    for _ in range(6):
+        cv2.circle(patch, (int(rng.integers(10, 210)), int(rng.integers(10, 170))), int(rng.integers(4, 12)), 1, -1)
+    for centre_u, colour in ((768, (220, 40, 40)), (256, (40, 40, 220))):
+        top, left = h // 2 - 90, centre_u - 110
+        wall = np.empty((180, 220, 3), np.uint8)
+        wall[:] = colour
+        wall[patch > 0] = (10, 10, 10)
+        pano[top : top + 180, left : left + 220] = wall
+    return torch.from_numpy(pano).permute(2, 0, 1)[None].contiguous()
+
+
+def test_rotation_agent_rejects_the_wrong_wall():
+    equi = two_walls_panorama()
+    e = ep((0, -75), (0, 90), difficulty="hard")  # the blue wall in view, the red one is the target
+    env = TinyEnv(equi, e)
+    agent = make_agent("rotation", None, 1, "cpu", 0)
+    agent.reset([0], [e])
+    assert _play(env, agent, 1500)
+    assert env.eps() == 0
+    rejected = agent.slots[0].rejected
+    # the blue wall was a candidate and was rejected once (then never revisited)
+    assert len(rejected) == 1
+    p, y, score = rejected[0]
+    assert (p + e.init_pitch, wrap_yaw(y + e.init_yaw)) == (0, -90) and score < agent.verify_thresh
+
+
+def test_rotation_agent_corrupted_target(panos):
+    e = ep((5, 30), (-8, 72), difficulty="medium")
+    env = TinyEnv(panos[PANOS[1]], e, corrupt=_blur_noise_brighten)
+    agent = make_agent("rotation", None, 1, "cpu", 0)
+    agent.reset([0], [e])
+    assert _play(env, agent, 400)
+    assert env.eps() == 0
+    # no view equals a corrupted target: the stop came from the colour check
+    assert not torch.equal(env.obs()["view"], env.target)
+
+
+def test_rotation_refine_climbs_to_the_best_pose():
+    """The one-degree refinement on a toy world where a pose (p, y) sees a crop shifted by 2 px per
+    degree, and the target (pose (0, 0)) is noisy: from (1, -1) it must climb to (0, 0) and stop."""
+    rng = np.random.default_rng(0)
+    world = cv2.GaussianBlur(rng.integers(0, 256, (160, 160, 3)).astype(np.uint8), (0, 0), 2.0)
+
+    def view_at(p: int, y: int) -> np.ndarray:
+        r, c = 48 - 2 * p, 48 + 2 * y
+        return np.ascontiguousarray(world[r : r + 64, c : c + 64].transpose(2, 0, 1))
+
+    noisy = view_at(0, 0).astype(np.int16) + rng.integers(-20, 21, (3, 64, 64))
+    agent = make_agent("rotation", None, 1, "cpu", 0)
     agent.reset([0], [ep()])
     s = agent.slots[0]
-    assert agent.decide(s, good(0.0, 1.0)) == RIGHT
-    assert agent.decide(s, RotationEstimate()) == STOP
-    agent.reset([0], [ep()])
-    assert agent.decide(agent.slots[0], good(0.4, -0.3)) == STOP
+    s.target = agent.prepare_target(s, noisy.clip(0, 255).astype(np.uint8))
+    s.pose_p, s.pose_y, s.mode = 1, -1, "refine"
+    for _ in range(30):
+        a = agent.step(0, s, view_at(s.pose_p, s.pose_y))
+        if a == STOP:
+            break
+    assert a == STOP and (s.pose_p, s.pose_y) == (0, 0)
+    assert len(s.scores) <= 9  # each pose scored once, only around the path
+
+
+def test_rotation_agent_far_target_and_the_pitch_bound(sun360_mini_files):
+    """The target is far from the start (no overlap, first search row too high); the start is near the
+    top bound and the search runs into the clamp: the agent's dead reckoning must keep its pitch, and
+    the search must find the target within its rows (a bounded number of steps)."""
+    task = pytest.importorskip("findview.task")
+    sim_mod = pytest.importorskip("findview.sim")
+    image = str({f.name: f for f in sun360_mini_files}[PANOS[1]])
+    e = Episode("far", image, 55, 10, -45, -150, difficulty="hard", seed=3)
+    bank = sim_mod.PanoramaBank("cpu", 256, prefetch_workers=0)
+    size = 128  # small views keep the test fast; keypoints at full size
+    sim = sim_mod.Simulator(bank, FOV, size, size, pitch_bound=60)
+    env = task.FindViewEnv(sim, task.StaticEpisodeSource([e]), 1, max_steps=5000, pitch_bound=60, prefetch=0)
+    agent = make_agent("rotation", {"search_scale": 1.0}, 1, "cpu", 0)
+    spacing = agent.row_spacing(size, size)
+    bound = 4 * 360 + 2 * 120 + spacing  # four rows and the moves between them
+    obs = env.reset()
+    agent.reset([0], [e])
+    wrong, record = [], None
+    try:
+        for _ in range(bound):
+            a = agent.act(obs)
+            # the agent's pitch before the move it just booked (the clamp of its previous move
+            # accounted) is the env's pitch relative to the start
+            before = agent.slots[0].pose_p - int(a[0] == UP) + int(a[0] == DOWN)
+            if before != int(env.pitch[0]) - e.init_pitch:
+                wrong.append((int(env.steps[0]), before, int(env.pitch[0])))
+            obs, _, _, infos = env.step(a)
+            if infos[0] is not None:
+                record = infos[0]
+                break
+    finally:
+        env.close()
+    assert record is not None and record["called_stop"] and record["eps"] == 0
+    assert not wrong
+    s = agent.slots[0]
+    assert s.hi is not None and s.hi + e.init_pitch == 60  # it ran into the top bound and knows it
 
 
 # ------------------------------------------------------------------------------------------------

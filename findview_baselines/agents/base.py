@@ -34,7 +34,7 @@ try:  # the task package defines the canonical enum; keep a local twin until it 
 except Exception:  # pragma: no cover - depends on the lead's progress
 
     class Action(IntEnum):  # type: ignore[no-redef]
-        """Discrete FindView actions (SPEC section 2)."""
+        """Discrete FindView actions (docs/TASK.md)."""
 
         UP = 0
         DOWN = 1
@@ -65,6 +65,9 @@ __all__ = [
     "check_keys",
     "episode_rng",
     "rgb_to_gray",
+    "host_images",
+    "chw_to_hwc",
+    "gray_of",
 ]
 
 
@@ -103,18 +106,50 @@ def episode_rng(seed: int, episode: Episode | None, fallback: np.random.Generato
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, int(episode.seed) & 0xFFFFFFFF, ident])
 
 
-def rgb_to_gray(images: torch.Tensor) -> np.ndarray:
-    """``(N, 3, H, W)`` uint8 RGB tensor (any device) -> ``(N, H, W)`` uint8 numpy gray images.
+def host_images(images: torch.Tensor, index: Sequence[int] | None = None) -> np.ndarray:
+    """``(N, 3, H, W)`` uint8 tensor (any device) -> ``(K, 3, H, W)`` uint8 numpy array of the rows ``index``.
 
-    Same fixed-point weights and rounding as ``cv2.cvtColor(..., COLOR_RGB2GRAY)``
-    (``0.299 R + 0.587 G + 0.114 B``); the conversion runs on the tensor's device, only the gray planes
-    are copied to the host.
+    One host transfer per call: a CPU tensor is viewed without a copy (``Tensor.numpy()``) and indexed
+    in numpy; a CUDA tensor is indexed on its device and copied once. No torch op runs on the host, so
+    a busy CPU cannot make this call wait on idle OpenMP threads (docs/ARCHITECTURE.md, CPU threads).
     """
     if images.ndim != 4 or images.shape[1] != 3:
         raise ValueError(f"expected (N, 3, H, W) RGB images, got shape {tuple(images.shape)}")
-    x = images.to(torch.int32)
-    g = (x[:, 0] * 4899 + x[:, 1] * 9617 + x[:, 2] * 1868 + 8192) >> 14
-    return g.to(torch.uint8).cpu().numpy()
+    if images.device.type == "cpu":
+        arr = images.detach().numpy()
+        return arr if index is None else arr[np.asarray(index, dtype=np.int64)]
+    if index is not None:
+        images = images[torch.as_tensor(list(index), dtype=torch.long, device=images.device)]
+    return images.detach().cpu().numpy()
+
+
+def chw_to_hwc(image: np.ndarray) -> np.ndarray:
+    """``(3, H, W)`` -> contiguous ``(H, W, 3)`` (the layout OpenCV expects); one copy."""
+    return np.ascontiguousarray(image.transpose(1, 2, 0))
+
+
+def gray_of(image: np.ndarray) -> np.ndarray:
+    """``(3, H, W)`` uint8 RGB numpy image -> ``(H, W)`` uint8 gray, ``0.299 R + 0.587 G + 0.114 B`` in
+    OpenCV's 14-bit fixed point (``(4899 R + 9617 G + 1868 B + 8192) >> 14``, the reference rounding of
+    ``cv2.cvtColor(..., COLOR_RGB2GRAY)``; its SIMD path differs by 1 on ~0.3% of the pixels), in numpy."""
+    r = image[0].astype(np.uint32)
+    r *= 4899
+    r += image[1].astype(np.uint32) * 9617
+    r += image[2].astype(np.uint32) * 1868
+    r += 8192
+    r >>= 14
+    return r.astype(np.uint8)
+
+
+def rgb_to_gray(images: torch.Tensor) -> np.ndarray:
+    """``(N, 3, H, W)`` uint8 RGB tensor (any device) -> ``(N, H, W)`` uint8 numpy gray images.
+
+    :func:`gray_of` on one host copy of the batch (:func:`host_images`); no torch op runs on the host.
+    """
+    arr = host_images(images)
+    if arr.shape[0] == 0:
+        return np.zeros((0,) + arr.shape[2:], np.uint8)
+    return np.stack([gray_of(a) for a in arr])
 
 
 class Agent:

@@ -1,4 +1,4 @@
-"""The paper's rule-based agents ``orb`` and ``sift`` (SPEC section 9, paper appendix D).
+"""The paper's rule-based agents ``orb`` and ``sift`` (docs/TASK.md, rule-based agents; paper appendix D).
 
 One step of a slot:
 
@@ -9,7 +9,7 @@ One step of a slot:
 4. brute-force 2-NN matching of current -> target descriptors (Hamming for ORB, L2 for SIFT) with
    Lowe's ratio test (``ratio``, 0.7); fewer than ``min_matches`` matches -> repeat the previous action;
 5. drop matches whose descriptor distance is above ``d_thresh`` (the paper's pseudocode writes the
-   comparison the other way round; SPEC section 9 keeps matches with ``distance <= d_thresh``; ``inf``
+   comparison the other way round; the task keeps matches with ``distance <= d_thresh``; ``inf``
    keeps all). ``d_thresh`` can be set per difficulty; the slot uses its episode's difficulty;
 6. each match votes: displacement ``(dx, dy) = target keypoint - current keypoint`` in pixels (x right,
    y down). Both ``|dx|, |dy| < stop_px`` -> STOP; else along the dominant axis: ``dx < 0`` -> RIGHT
@@ -23,38 +23,35 @@ One step of a slot:
 
 The "previous action" of a fresh episode is a seeded choice of LEFT or RIGHT.
 
-Runtime: everything runs on the host with OpenCV; the target features are cached per slot; slots are
-processed by ``threads`` worker threads (OpenCV releases the GIL), with ``cv2_threads`` OpenCV threads.
+Runtime (:class:`~findview_baselines.agents.feature_base.FeatureAgent`): everything runs on the host
+with OpenCV and numpy; the target features are computed once per episode; slots are processed by
+``threads`` worker threads (OpenCV releases the GIL), with ``cv2_threads`` OpenCV threads.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from typing import Any, TypeVar
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from findview.episode import DIFFICULTIES, Episode
-from findview_baselines.agents.base import (
-    DOWN,
-    LEFT,
-    NUM_ACTIONS,
-    RIGHT,
-    STOP,
-    UP,
-    Agent,
-    check_keys,
-    episode_rng,
-    rgb_to_gray,
-    to_plain_dict,
+from findview_baselines.agents.base import DOWN, LEFT, NUM_ACTIONS, RIGHT, STOP, UP, gray_of
+from findview_baselines.agents.feature_base import (
+    DETECTORS,
+    FeatureAgent,
+    Features,
+    ParallelRunner,
+    Slot,
+    cv2_num_threads,
+    detect,
+    knn2,
+    match_features,
+    norm_type,
 )
 
 __all__ = [
@@ -63,6 +60,7 @@ __all__ = [
     "detect",
     "knn2",
     "match_features",
+    "norm_type",
     "displacement_votes",
     "vote_action",
     "is_oscillating",
@@ -72,121 +70,7 @@ __all__ = [
     "FeatureMatchingAgent",
 ]
 
-DETECTORS = ("orb", "sift")
 OSC_RULES = ("alternating", "mixed")
-_T = TypeVar("_T")
-_R = TypeVar("_R")
-
-
-# --------------------------------------------------------------------------------------------------
-# features and matching
-# --------------------------------------------------------------------------------------------------
-@dataclass
-class Features:
-    """Keypoints of one image.
-
-    Attributes:
-        pts: ``(K, 2)`` float32 keypoint positions ``(x, y)`` in pixels (x = column to the right,
-            y = row downwards; OpenCV convention, pixel centres at integer coordinates).
-        des: ``(K, 32)`` uint8 (ORB) or ``(K, 128)`` float32 (SIFT) descriptors; ``None`` when ``K == 0``.
-    """
-
-    pts: np.ndarray
-    des: np.ndarray | None
-
-    def __len__(self) -> int:
-        return int(self.pts.shape[0])
-
-
-_local = threading.local()
-
-
-def _detector(kind: str, n_features: int) -> cv2.Feature2D:
-    """A per-thread cached OpenCV detector (Feature2D objects are not shared between threads)."""
-    cache = getattr(_local, "detectors", None)
-    if cache is None:
-        cache = _local.detectors = {}
-    key = (kind, int(n_features))
-    det = cache.get(key)
-    if det is None:
-        if kind == "orb":
-            det = cv2.ORB_create(nfeatures=int(n_features))
-        elif kind == "sift":
-            det = cv2.SIFT_create(nfeatures=int(n_features))
-        else:
-            raise ValueError(f"unknown detector {kind!r}; expected one of {DETECTORS}")
-        cache[key] = det
-    return det
-
-
-def norm_type(kind: str) -> int:
-    """OpenCV norm of the descriptors of ``kind``: Hamming for ORB, L2 for SIFT."""
-    if kind == "orb":
-        return cv2.NORM_HAMMING
-    if kind == "sift":
-        return cv2.NORM_L2
-    raise ValueError(f"unknown detector {kind!r}; expected one of {DETECTORS}")
-
-
-def detect(kind: str, gray: np.ndarray, n_features: int = 500) -> Features:
-    """Detect keypoints and compute descriptors on a ``(H, W)`` uint8 gray image."""
-    kps, des = _detector(kind, n_features).detectAndCompute(gray, None)
-    if not kps or des is None:
-        return Features(np.zeros((0, 2), np.float32), None)
-    pts = np.array([kp.pt for kp in kps], dtype=np.float32).reshape(-1, 2)
-    return Features(pts, des)
-
-
-def knn2(des_query: np.ndarray, des_train: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
-    """Brute-force 2 nearest neighbours of each query descriptor among the train descriptors.
-
-    ORB (Hamming): ``cv2.batchDistance``, the kernel behind ``cv2.BFMatcher.knnMatch`` (same distances,
-    same neighbours), without building ``DMatch`` objects. SIFT (L2): the exhaustive distance matrix
-    ``|q|^2 + |t|^2 - 2 q.t`` as one float32 matrix product (3-4x faster than OpenCV's loop on 2
-    cores; distances agree with ``BFMatcher`` to ~1e-4 relative, so only exact ties may differ).
-
-    Returns:
-        ``dist (Q, 2)`` float32 descriptor distances (Hamming bit count or L2 norm), ascending, and
-        ``idx (Q, 2)`` int32 train indices; with a single train descriptor the second column is
-        ``inf`` / ``-1``.
-    """
-    q = len(des_query)
-    if q == 0 or len(des_train) == 0:
-        return np.zeros((q, 2), np.float32) + np.inf, np.full((q, 2), -1, np.int32)
-    k = min(2, len(des_train))
-    if kind == "sift":
-        a = torch.from_numpy(np.ascontiguousarray(des_query, dtype=np.float32))
-        b = torch.from_numpy(np.ascontiguousarray(des_train, dtype=np.float32))
-        d2 = (a * a).sum(1, keepdim=True) + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
-        top = torch.topk(d2, k, dim=1, largest=False, sorted=True)
-        dist = top.values.clamp_min_(0.0).sqrt_().numpy()
-        idx = top.indices.to(torch.int32).numpy()
-    else:
-        dist, idx = cv2.batchDistance(des_query, des_train, -1, normType=norm_type(kind), K=k)
-        dist = dist.astype(np.float32, copy=False)
-    if k == 1:
-        dist = np.concatenate([dist, np.full((q, 1), np.inf, np.float32)], axis=1)
-        idx = np.concatenate([idx, np.full((q, 1), -1, np.int32)], axis=1)
-    return dist, idx
-
-
-def match_features(
-    cur: Features, tgt: Features, kind: str, ratio: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """2-NN matching with Lowe's ratio test.
-
-    Returns:
-        ``cur_idx (M,)``, ``tgt_idx (M,)`` int indices of the kept matches and their descriptor
-        ``distance (M,)`` float32 (nearest neighbour), for the ``M`` matches with
-        ``d1 < ratio * d2``.
-    """
-    if len(cur) == 0 or len(tgt) == 0:
-        e = np.zeros(0, np.int64)
-        return e, e, np.zeros(0, np.float32)
-    dist, idx = knn2(cur.des, tgt.des, kind)  # type: ignore[arg-type]
-    good = dist[:, 0] < ratio * dist[:, 1]
-    q = np.flatnonzero(good)
-    return q, idx[q, 0].astype(np.int64), dist[q, 0]
 
 
 def displacement_votes(disp: np.ndarray, stop_px: float = 1.0) -> np.ndarray:
@@ -279,57 +163,18 @@ def parse_d_thresh(value: Any) -> dict[str, float]:
     return {**{d: x for d in DIFFICULTIES}, "default": x}
 
 
-@contextlib.contextmanager
-def cv2_num_threads(n: int | None) -> Iterator[None]:
-    """Run the block with ``cv2.setNumThreads(n)`` and restore the previous value (``None``: no change).
-
-    OpenCV's setting is process-wide; scoping it to the agent's ``act`` keeps e.g. the simulator's
-    OpenCV remaps multi-threaded.
-    """
-    if n is None:
-        yield
-        return
-    prev = cv2.getNumThreads()
-    cv2.setNumThreads(int(n))
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(prev)
-
-
-class ParallelRunner:
-    """Maps a function over slots with a small thread pool (serial for 1 thread or 1 item)."""
-
-    def __init__(self, threads: int) -> None:
-        self.threads = max(1, int(threads))
-        self._pool: ThreadPoolExecutor | None = None
-
-    def map(self, fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
-        if self.threads <= 1 or len(items) <= 1:
-            return [fn(x) for x in items]
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="findview-agent")
-        return list(self._pool.map(fn, items))
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
-
-
 # --------------------------------------------------------------------------------------------------
 # the agent
 # --------------------------------------------------------------------------------------------------
 @dataclass
-class _SlotState:
-    difficulty: str | None = None
-    target: Features | None = None  # None: compute on the next act
-    prev: int = RIGHT
-    history: deque | None = None
-    done: bool = False
+class _SlotState(Slot):
+    """A slot of :class:`FeatureMatchingAgent`: ``target`` holds the target's :class:`Features`."""
+
+    prev: int = RIGHT  # the action repeated when the rule has no vote
+    history: deque = field(default_factory=deque)  # the last osc_window - 1 actions
 
 
-class FeatureMatchingAgent(Agent):
+class FeatureMatchingAgent(FeatureAgent):
     """The paper's ``orb`` / ``sift`` rule-based agent (batched; per-slot state).
 
     Args:
@@ -343,10 +188,7 @@ class FeatureMatchingAgent(Agent):
         stop_px: a match votes STOP when both displacements are below this many pixels (1.0).
         osc_window: actions in the oscillation window, this step's included (4; < 2 disables).
         osc_rule: ``"alternating"`` or ``"mixed"`` (see :func:`is_oscillating`).
-        threads: worker threads over slots (2).
-        cv2_threads: OpenCV threads while the agent acts on several slots (1: the slot threads do the
-            parallel work; ``None`` leaves OpenCV's setting alone). Restored after each ``act``; a step
-            with a single slot to process keeps OpenCV's own setting.
+        threads, cv2_threads: see :class:`~findview_baselines.agents.feature_base.FeatureAgent`.
     """
 
     name = "feature"
@@ -381,7 +223,6 @@ class FeatureMatchingAgent(Agent):
         threads: int = 2,
         cv2_threads: int | None = 1,
     ) -> None:
-        super().__init__(num_envs, device, seed)
         if detector not in DETECTORS:
             raise ValueError(f"unknown detector {detector!r}; expected one of {DETECTORS}")
         if osc_rule not in OSC_RULES:
@@ -398,51 +239,46 @@ class FeatureMatchingAgent(Agent):
         self.stop_px = float(stop_px)
         self.osc_window = int(osc_window)
         self.osc_rule = osc_rule
-        self.cv2_threads = None if cv2_threads is None else int(cv2_threads)
-        self.runner = ParallelRunner(threads)
-        self._rng = np.random.default_rng(self.seed)
-        self.states = [self._fresh_state(None) for _ in range(self.num_envs)]
+        super().__init__(num_envs, device, seed, threads=threads, cv2_threads=cv2_threads)
 
     @classmethod
-    def from_config(
+    def from_config(  # type: ignore[override]
         cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int, detector: str | None = None
     ) -> "FeatureMatchingAgent":
-        c = to_plain_dict(cfg)
-        check_keys(detector or "feature", c, cls.CONFIG_KEYS)
-        kw = {k: c[k] for k in cls.CONFIG_KEYS if k in c}
-        if detector is not None:
-            if kw.get("detector", detector) != detector:
-                raise ValueError(f"agent {detector!r}: config sets detector={kw['detector']!r}")
-            kw["detector"] = detector
-        return cls(num_envs, device, seed, **kw)
+        """Build from a config; ``detector`` (``"orb"``/``"sift"``) is imposed by the registry name."""
+        fixed = {} if detector is None else {"detector": detector}
+        return super().from_config(cfg, num_envs, device, seed, **fixed)
+
+    @property
+    def states(self) -> list[_SlotState]:
+        """The per-slot states (alias of ``slots``)."""
+        return self.slots
 
     # state ---------------------------------------------------------------------------------------
-    def _fresh_state(self, ep: Episode | None) -> _SlotState:
-        rng = episode_rng(self.seed, ep, self._rng)
+    def new_slot(self, episode: Episode | None, rng: np.random.Generator) -> _SlotState:
         return _SlotState(
-            difficulty=None if ep is None else ep.difficulty,
-            target=None,
+            rng=rng,
+            difficulty=None if episode is None else episode.difficulty,
             prev=LEFT if rng.integers(0, 2) == 0 else RIGHT,
             history=deque(maxlen=max(1, self.osc_window - 1)),
-            done=False,
         )
 
-    def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
-        """Start ``episodes`` in slots ``env_ids``; a ``None`` episode idles the slot (STOP, no work)."""
-        super().reset(env_ids, episodes)
-        for i, ep in zip(env_ids, episodes):
-            self.states[int(i)] = self._fresh_state(ep)
-            self.states[int(i)].done = ep is None
+    def prepare_target(self, slot: Slot, target: np.ndarray) -> Features:
+        return detect(self.detector, gray_of(target), self.n_features)
 
     def threshold(self, i: int) -> float:
         """``d_thresh`` of slot ``i`` (its episode's difficulty)."""
-        d = self.states[i].difficulty
+        d = self.slots[i].difficulty
         return self.d_thresh.get(d, self.d_thresh["default"]) if d is not None else self.d_thresh["default"]
 
     # acting --------------------------------------------------------------------------------------
+    def step(self, i: int, slot: Slot, view: np.ndarray | None) -> int:
+        assert view is not None
+        return self.decide(i, detect(self.detector, gray_of(view), self.n_features))
+
     def decide(self, i: int, cur: Features) -> int:
         """The action of slot ``i`` given its current-view features (updates the slot's history)."""
-        st = self.states[i]
+        st = self.slots[i]
         tgt = st.target
         assert tgt is not None
         a: int | None = None
@@ -461,32 +297,3 @@ class FeatureMatchingAgent(Agent):
         if a == STOP:
             st.done = True
         return a
-
-    def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        view, target = self._check_obs(obs)
-        actions = np.full(self.num_envs, STOP, dtype=np.int64)
-        work = [i for i, st in enumerate(self.states) if not st.done]
-        if work:
-            need_t = [i for i in work if self.states[i].target is None]
-            gv = rgb_to_gray(view[work] if len(work) < self.num_envs else view)
-            gt = rgb_to_gray(target[need_t]) if need_t else None
-            pos_t = {i: k for k, i in enumerate(need_t)}
-
-            def step(k_i: tuple[int, int]) -> int:
-                k, i = k_i
-                st = self.states[i]
-                if st.target is None:
-                    st.target = detect(self.detector, gt[pos_t[i]], self.n_features)  # type: ignore[index]
-                cur = detect(self.detector, gv[k], self.n_features)
-                return self.decide(i, cur)
-
-            # one slot: let OpenCV parallelise inside it; several: one slot per worker thread
-            with cv2_num_threads(self.cv2_threads if len(work) > 1 else None):
-                results = self.runner.map(step, list(enumerate(work)))
-            for i, a in zip(work, results):
-                actions[i] = a
-        return self._as_actions(actions, view.device)
-
-    def close(self) -> None:
-        """Stop the worker threads."""
-        self.runner.close()

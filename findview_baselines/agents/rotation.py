@@ -1,8 +1,9 @@
-"""``rotation``: a geometric rule-based agent (beyond the paper).
+"""``rotation``: the exact geometric rule-based agent (beyond the paper).
 
-Instead of voting on pixel displacements, it estimates the full relative rotation between the current
-view and the target from feature matches, using the known pinhole geometry (SPEC section 1), and then
-walks straight to the target.
+It estimates the full relative rotation between its view and the target from feature matches with the
+known pinhole geometry (docs/TASK.md, world), walks straight to the candidate pose this gives, checks
+in colour that the view there *is* the target before it calls STOP, and searches the sphere
+systematically when nothing matches.
 
 Geometry. A view pixel ``(x, y)`` (OpenCV keypoint coordinates, pixel centres at integers) has the
 camera-frame bearing ``d = ((x + 0.5 - W/2) / f', -(y + 0.5 - H/2) / f', 1)``, ``f' = W / (2 tan(fov/2))``.
@@ -20,20 +21,49 @@ an X-Y-X Euler product. We fit ``R_rel`` to the matched unit bearings with RANSA
 - when ``|sin dyaw|`` is large enough, even the absolute pitches ``p_c = -atan2(-R[1,0], -R[2,0])`` and
   ``p_t = atan2(-R[0,1], R[0,2])`` (up to the sign of ``sin dyaw``), used to reject implausible fits.
 
-Policy (per slot):
+The estimate is sub-degree (sub-pixel keypoints, a least-squares fit on tens of inliers), so rounding
+it gives the exact integer moves.
 
-- WALK: with a valid estimate, the remaining moves ``(round(dpitch), round(dyaw))`` are a plan that the
-  agent dead-reckons (every move is exactly 1 degree, and a straight walk to a target inside the pitch
-  bounds never hits them), moving along the axis with more remaining moves (a straight-ish line keeps
-  the views overlapping). It re-estimates every ``reestimate_every`` moves and whenever the plan is
-  used up: an estimate that rounds to ``(0, 0)`` ends the episode with STOP, any other replaces the plan.
-  A lost track (no valid estimate) keeps walking the last plan; on arrival without a valid estimate it
-  STOPs (the best guess) once the target has been seen, else sweeps.
-- SWEEP (nothing to match, e.g. the hard episodes with no overlap): a full 360-degree yaw turn in one
-  seeded direction, then the pitch moves to the next level of ``0, +s, -s, +2s, -2s`` degrees relative to
-  the start (``s = sweep_pitch``, default fov/2), and so on; it tries an estimate every
-  ``sweep_check_every`` steps.
-- Guards: after ``max_arrivals`` arrivals whose check asks for more moves, it STOPs.
+Dead reckoning. The agent never sees its rotation, but it knows every move it made: its pose relative
+to the start, ``(pose_p, pose_y)`` degrees, is exact in yaw (moves never fail there) and in pitch up
+to the clamp at the pitch bound. A pitch move into the bound leaves the view unchanged, byte for byte
+(the renderer is deterministic): the agent compares the view after each pitch move with the one
+before, and on a clamp it undoes the move in its reckoning and learns where the bounds lie relative
+to the start (the bound is ``pitch_bound`` above and below the horizon, so the interval of reachable
+relative pitches is ``2 * pitch_bound`` wide and holds every pitch it has visited).
+
+Policy of a slot (states ``search``, ``goto``, ``refine``):
+
+- ``goto`` a candidate pose (relative coordinates): one move per step along the axis with more moves
+  left; a new estimate after half the moves the last one asked for (at least ``reestimate_every``)
+  and on arrival replaces the candidate (``candidate = pose + round(estimate)``);
+- **verify before stopping**: where the estimate rounds to ``(0, 0)`` (or on arrival without an
+  estimate), a check of the view against the target in colour decides: :func:`photometric_score`
+  (structure in colour) at least ``verify_thresh`` and :func:`mean_chromaticity` within
+  ``verify_chroma`` -> STOP, else the candidate is rejected: remembered, and estimates that point
+  within ``reject_radius`` degrees of a rejected candidate are ignored from then on. After
+  ``max_arrivals`` arrivals that each ask for more moves, the candidate is decided at the pose reached;
+- **search** when no usable estimate exists: rows of constant pitch, each a yaw turn in one seeded
+  direction, estimating every ``sweep_check_every`` moves from keypoints detected at ``search_scale``
+  (a target in view is found at half size; the first look of an episode, the walk and the final
+  checks use full-size views); a row turns ``360 - fov / 3`` degrees. The first row is at the start
+  pitch; the next is ``sweep_pitch`` degrees above the highest row or below the lowest one, among
+  those that can still hold uncovered target pitches (a row covers ``sweep_pitch / 2`` above and
+  below it), bounded by what the agent knows of the pitch bounds: the nearer one while the horizon is
+  unknown, and once a clamp has shown it, the one covering more of the task's target-pitch
+  distribution (so a row planned beyond a bound is re-chosen when the clamp is met). A candidate
+  interrupts the search; after a rejection the agent walks back to where it left the search and
+  resumes it;
+- **exact stop**: a view byte-identical to the target (a clean target) stops at once. A candidate
+  that passes the check without being identical (a corrupted target, or an estimate off by one) is
+  refined when the estimate is ambiguous (within ``REFINE_MARGIN`` of halfway between two poses) or
+  missing: the agent moves to its one-degree neighbours, scores each pose once with
+  :func:`photometric_score` at ``REFINE_SCALE`` (1 degree ~ 1 pixel), climbs to a better one while
+  there is one and stops on the best (``refine``; about 8 extra steps);
+- when the search has covered every pitch, the agent walks to the best-scoring rejected candidate,
+  refines there and stops; when no candidate came up at all, it searches once more with full-size
+  views, then goes to the best-scoring view it checked (a featureless target, e.g. a clear sky),
+  refines there and stops.
 
 A valid estimate needs ``min_inliers`` inliers and plausible absolute pitches (within
 ``pitch_bound + pitch_tol``) when they are observable.
@@ -42,32 +72,21 @@ A valid estimate needs ``min_inliers`` inliers and plausible absolute pitches (w
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
 from findview.episode import Episode
 from findview.geometry import focal_length
-from findview_baselines.agents.base import (
-    DOWN,
-    LEFT,
-    RIGHT,
-    STOP,
-    UP,
-    Agent,
-    check_keys,
-    episode_rng,
-    rgb_to_gray,
-    to_plain_dict,
-)
-from findview_baselines.agents.feature_matching import (
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, chw_to_hwc, gray_of
+from findview_baselines.agents.feature_base import (
     DETECTORS,
+    FeatureAgent,
     Features,
-    ParallelRunner,
-    cv2_num_threads,
+    Slot,
     detect,
     match_features,
 )
@@ -79,6 +98,10 @@ __all__ = [
     "decompose_relative_rotation",
     "estimate_relative_rotation",
     "estimate_from_features",
+    "estimate_from_images",
+    "photometric_template",
+    "photometric_score",
+    "mean_chromaticity",
     "RotationAgent",
 ]
 
@@ -275,32 +298,104 @@ def estimate_from_images(
     )
 
 
+
+
+# --------------------------------------------------------------------------------------------------
+# photometric check
+# --------------------------------------------------------------------------------------------------
+VERIFY_SCALE = 4  # the check compares images downsampled by this factor (area average) ...
+VERIFY_SIGMA = 1.0  # ... then blurred with this Gaussian sigma (pixels of the downsampled image)
+REFINE_SCALE = 2  # the final one-degree refinement compares at this downsampling (1 degree ~ 1 pixel)
+REFINE_MARGIN = 0.3  # ... and runs when the estimate is this close (degrees) to halfway between two poses
+
+
+def photometric_template(image: np.ndarray, scale: int = VERIFY_SCALE, sigma: float = VERIFY_SIGMA) -> np.ndarray:
+    """The ``(3, H, W)`` uint8 RGB image as the check sees it: downsampled ``scale`` times (area
+    average), blurred (``sigma``, pixels of the downsampled image), per-channel mean removed, scaled to
+    unit norm over all channels. Returns ``(H / scale, W / scale, 3)`` float32 (zeros for a flat image)."""
+    hwc = chw_to_hwc(image)
+    h, w = hwc.shape[:2]
+    small = cv2.resize(hwc, (max(1, w // scale), max(1, h // scale)), interpolation=cv2.INTER_AREA)
+    x = cv2.GaussianBlur(small.astype(np.float32), (0, 0), sigma)
+    x -= x.reshape(-1, 3).mean(axis=0)
+    n = float(np.sqrt((x * x).sum()))
+    return x / n if n > 1e-3 else np.zeros_like(x)
+
+
+def mean_chromaticity(image: np.ndarray) -> np.ndarray:
+    """Chromaticity ``(r, g, b) / (r + g + b)`` of the mean colour of a ``(3, H, W)`` uint8 RGB image,
+    ``(3,)`` float64 (grey: ``1/3`` each; a flat black image counts as grey). A gain on all channels,
+    contrast changes about the mean, blur and zero-mean noise leave it (almost) unchanged."""
+    m = image.reshape(3, -1).mean(axis=1, dtype=np.float64)
+    t = float(m.sum())
+    return m / t if t > 1e-6 else np.full(3, 1.0 / 3.0)
+
+
+def photometric_score(a: np.ndarray, b: np.ndarray) -> float:
+    """Colour zero-mean normalised cross-correlation of two :func:`photometric_template` outputs, in
+    ``[-1, 1]`` (1: the same picture up to a gain and a per-channel offset).
+
+    The three channels are correlated together (one norm over all of them): the same structure in
+    other colours scores low (the channels that carry it differ), while blur and noise (removed by the
+    downsampling and the blur), brightness and contrast changes (a gain and offsets) keep a high score.
+    """
+    return float((a * b).sum())
+
+
 # --------------------------------------------------------------------------------------------------
 # the agent
 # --------------------------------------------------------------------------------------------------
-WALK, SWEEP = "walk", "sweep"
+SEARCH, GOTO, REFINE = "search", "goto", "refine"
 
 
 @dataclass
-class _Slot:
-    rng: np.random.Generator
-    target: Features | None = None
-    mode: str = SWEEP
-    plan_p: int = 0  # remaining pitch moves (+ up)
-    plan_y: int = 0  # remaining yaw moves (+ right)
-    since_est: int = 10**9  # moves since the last estimate attempt
-    seen: bool = False  # a valid estimate happened this episode
+class _Target:
+    features: Features
+    template: np.ndarray  # photometric_template of the target
+    chroma: np.ndarray  # mean_chromaticity of the target
+    image: np.ndarray  # (3, H, W) uint8 copy: a view equal to it is the target
+    coarse: Features | None = None  # keypoints at search_scale (computed on the first coarse estimate)
+    fine: np.ndarray | None = None  # photometric_template at REFINE_SCALE (computed when refining)
+
+
+@dataclass
+class _RotSlot(Slot):
+    """State of one :class:`RotationAgent` slot (poses in degrees relative to the episode start)."""
+
+    pose_p: int = 0
+    pose_y: int = 0
+    lo: int | None = None  # relative pitch of the lower bound, once a clamp showed it
+    hi: int | None = None
+    vis_min: int = 0  # lowest / highest relative pitch visited
+    vis_max: int = 0
+    last: int = -1  # previous action
+    prev_view: np.ndarray | None = None  # the view before the last pitch move
+    mode: str = SEARCH
+    cand: tuple[int, int] | None = None
+    since_est: int = 10**9  # moves since the last estimate
+    est_left: int = 0  # moves to the candidate when it was last estimated
+    looked: bool = False  # an estimate was made this episode
     arrivals: int = 0
+    rejected: list = field(default_factory=list)  # [(pitch, yaw, score)]
+    best_seen: tuple | None = None  # (pitch, yaw, score) of the best-scoring view checked while searching
     sweep_dir: int = RIGHT
-    sweep_yaw: int = 0  # yaw moves done on the current sweep level
-    sweep_level: int = 0
-    sweep_pitch_todo: int = 0  # pitch moves left to reach the current level (+ up)
-    done: bool = False
-    last: RotationEstimate | None = None
+    rows: list = field(default_factory=list)  # relative pitches of the rows swept
+    row: int | None = None  # the row being swept
+    row_moves: int = 0  # yaw moves made on it
+    resume: tuple[int, int] | None = None  # where the search was left for a candidate
+    scores: dict = field(default_factory=dict)  # refinement: {(pitch, yaw): fine score}
+    queue: list = field(default_factory=list)  # refinement: poses still to score
+    passes: int = 0  # completed searches of the whole sphere (a second one uses full-size views)
+    exhausted: bool = False
+    last_est: Any = None  # the last RotationEstimate (for inspection)
 
 
-class RotationAgent(Agent):
-    """Relative-rotation estimation + dead-reckoned straight walk (see the module docstring).
+def _wrap(y: int) -> int:
+    return 180 - ((180 - int(y)) % 360)
+
+
+class RotationAgent(FeatureAgent):
+    """Rotation estimation, verify-before-stop and a covering search (see the module docstring).
 
     Args:
         num_envs, device, seed: see :class:`~findview_baselines.agents.base.Agent`.
@@ -309,15 +404,22 @@ class RotationAgent(Agent):
         ratio: Lowe ratio for the candidate matches (0.8; RANSAC removes the outliers).
         inlier_px: RANSAC inlier tolerance, pixels at the image centre (2.0).
         ransac_iters: RANSAC hypotheses (200).
-        min_inliers: inliers for a valid estimate (5; on 216 SIFT view pairs of sun360_mini, 5 gave no
-            wrong estimate, 4 gave 3).
-        pitch_bound: the task's pitch clamp (60); pitch_tol: slack on it for plausibility (10).
-        reestimate_every: moves between estimates while walking (4).
-        sweep_check_every: moves between estimate attempts while sweeping (3).
-        sweep_pitch: pitch change between sweep levels, degrees (``None``: ``round(fov / 2)``).
-        max_arrivals: arrivals that ask for more moves before giving up with STOP (6).
-        threads: worker threads over slots (2); cv2_threads: OpenCV threads while acting (1; ``None``:
-            leave OpenCV's setting alone).
+        min_inliers: inliers for a valid estimate (4; a wrong estimate costs a detour, not a wrong stop).
+        pitch_bound: the task's pitch clamp, degrees (60); pitch_tol: slack on it for plausibility (10).
+        reestimate_every: fewest moves between estimates while walking to a candidate (4); the next
+            estimate comes after half the moves the last one asked for, at least this many, and on arrival.
+        sweep_check_every: moves between estimates while searching (``None``: ``round(fov / 8)``).
+        sweep_pitch: pitch between search rows, degrees (``None``: 0.8 x the vertical field of view).
+        search_scale: the search detects keypoints on views downsampled by this factor (0.5; 1: full
+            size); walking to a candidate and the final checks use full-size views.
+        max_arrivals: arrivals that ask for more moves before the candidate is decided where it is (6).
+        verify_thresh: :func:`photometric_score` needed to stop at a candidate (0.6).
+        verify_chroma: largest difference of :func:`mean_chromaticity` (any channel) to stop (0.2).
+        reject_radius: estimates within this many degrees (each axis) of a rejected candidate are
+            ignored (3).
+        refine: after a candidate passes the check without being the exact target, score its
+            one-degree neighbours (moving there) and stop on the best (True).
+        threads, cv2_threads: see :class:`~findview_baselines.agents.feature_base.FeatureAgent`.
     """
 
     name = "rotation"
@@ -334,7 +436,12 @@ class RotationAgent(Agent):
         "reestimate_every",
         "sweep_check_every",
         "sweep_pitch",
+        "search_scale",
         "max_arrivals",
+        "verify_thresh",
+        "verify_chroma",
+        "reject_radius",
+        "refine",
         "threads",
         "cv2_threads",
     )
@@ -350,20 +457,28 @@ class RotationAgent(Agent):
         ratio: float = 0.8,
         inlier_px: float = 2.0,
         ransac_iters: int = 200,
-        min_inliers: int = 5,
+        min_inliers: int = 4,
         pitch_bound: int = 60,
         pitch_tol: float = 10.0,
         reestimate_every: int = 4,
-        sweep_check_every: int = 3,
+        sweep_check_every: int | None = None,
         sweep_pitch: int | None = None,
+        search_scale: float = 0.5,
         max_arrivals: int = 6,
+        verify_thresh: float = 0.6,
+        verify_chroma: float = 0.2,
+        reject_radius: int = 3,
+        refine: bool = True,
         threads: int = 2,
         cv2_threads: int | None = 1,
     ) -> None:
-        super().__init__(num_envs, device, seed)
         if detector not in DETECTORS:
             raise ValueError(f"unknown detector {detector!r}; expected one of {DETECTORS}")
         focal_length(fov, 1)  # validates fov
+        if not -1.0 <= float(verify_thresh) <= 1.0:
+            raise ValueError(f"verify_thresh must be in [-1, 1], got {verify_thresh!r}")
+        if int(pitch_bound) < 1:
+            raise ValueError(f"pitch_bound must be >= 1 degree, got {pitch_bound!r}")
         self.fov = float(fov)
         self.detector = detector
         self.n_features = int(n_features)
@@ -374,145 +489,332 @@ class RotationAgent(Agent):
         self.pitch_bound = int(pitch_bound)
         self.pitch_limit = float(pitch_bound) + float(pitch_tol)
         self.reestimate_every = max(1, int(reestimate_every))
-        self.sweep_check_every = max(1, int(sweep_check_every))
-        self.sweep_pitch = int(round(self.fov / 2)) if sweep_pitch is None else int(sweep_pitch)
+        self.sweep_check_every = (
+            max(1, int(round(self.fov / 8))) if sweep_check_every is None else max(1, int(sweep_check_every))
+        )
+        self.sweep_pitch = None if sweep_pitch is None else max(1, int(sweep_pitch))
+        if not 0.0 < float(search_scale) <= 1.0:
+            raise ValueError(f"search_scale must be in (0, 1], got {search_scale!r}")
+        self.search_scale = float(search_scale)
         self.max_arrivals = int(max_arrivals)
-        s = self.sweep_pitch
-        self.levels = [0, s, -s, 2 * s, -2 * s]
-        self.cv2_threads = None if cv2_threads is None else int(cv2_threads)
-        self.runner = ParallelRunner(threads)
-        self._rng = np.random.default_rng(self.seed)
-        self.slots = [self._fresh(None) for _ in range(self.num_envs)]
+        self.verify_thresh = float(verify_thresh)
+        self.verify_chroma = float(verify_chroma)
+        self.reject_radius = int(reject_radius)
+        self.refine = bool(refine)
+        super().__init__(num_envs, device, seed, threads=threads, cv2_threads=cv2_threads)
 
-    @classmethod
-    def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "RotationAgent":
-        c = to_plain_dict(cfg)
-        check_keys(cls.name, c, cls.CONFIG_KEYS)
-        return cls(num_envs, device, seed, **{k: c[k] for k in cls.CONFIG_KEYS if k in c})
+    # state ---------------------------------------------------------------------------------------
+    def new_slot(self, episode: Episode | None, rng: np.random.Generator) -> _RotSlot:
+        return _RotSlot(
+            rng=rng,
+            difficulty=None if episode is None else episode.difficulty,
+            sweep_dir=LEFT if rng.integers(0, 2) == 0 else RIGHT,
+        )
 
-    def _fresh(self, ep: Episode | None) -> _Slot:
-        rng = episode_rng(self.seed, ep, self._rng)
-        return _Slot(rng=rng, sweep_dir=LEFT if rng.integers(0, 2) == 0 else RIGHT)
+    def prepare_target(self, slot: Slot, target: np.ndarray) -> _Target:
+        return _Target(
+            features=detect(self.detector, gray_of(target), self.n_features),
+            template=photometric_template(target),
+            chroma=mean_chromaticity(target),
+            image=np.array(target, copy=True),
+        )
 
-    def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
-        """Start ``episodes`` in slots ``env_ids``; a ``None`` episode idles the slot (STOP, no work)."""
-        super().reset(env_ids, episodes)
-        for i, ep in zip(env_ids, episodes):
-            self.slots[int(i)] = self._fresh(ep)
-            self.slots[int(i)].done = ep is None
+    def row_spacing(self, height: int, width: int) -> int:
+        """Pitch between search rows, degrees: ``sweep_pitch``, else 0.8 x the vertical field of view."""
+        if self.sweep_pitch is not None:
+            return self.sweep_pitch
+        vfov = 2.0 * math.degrees(math.atan(height / 2.0 / focal_length(self.fov, width)))
+        return max(1, int(round(0.8 * vfov)))
 
-    # policy --------------------------------------------------------------------------------------
-    def needs_estimate(self, s: _Slot) -> bool:
-        """Whether the slot looks at its current view this step."""
-        if s.done:
+    # estimates -----------------------------------------------------------------------------------
+    def _features(self, gray: np.ndarray, coarse: bool) -> Features:
+        """Keypoints of a ``(H, W)`` gray image, in full-resolution pixel coordinates; ``coarse``:
+        detected on the image downsampled by ``search_scale`` (area average)."""
+        if not coarse or self.search_scale >= 1.0:
+            return detect(self.detector, gray, self.n_features)
+        h, w = gray.shape
+        sw, sh = max(16, int(round(w * self.search_scale))), max(16, int(round(h * self.search_scale)))
+        f = detect(self.detector, cv2.resize(gray, (sw, sh), interpolation=cv2.INTER_AREA), self.n_features)
+        if len(f):
+            scale = np.array([w / sw, h / sh], np.float32)
+            f = Features((f.pts + 0.5) * scale - 0.5, f.des)
+        return f
+
+    def estimate(self, s: _RotSlot, view: np.ndarray, coarse: bool = False) -> RotationEstimate:
+        """The target's rotation relative to ``view`` (``(3, H, W)`` uint8) from feature matches;
+        ``coarse``: from keypoints detected at ``search_scale`` (cheaper; used while searching)."""
+        _, h, w = view.shape
+        tgt: _Target = s.target
+        if coarse and self.search_scale < 1.0:
+            if tgt.coarse is None:
+                tgt.coarse = self._features(gray_of(tgt.image), True)
+            ref, inlier_px = tgt.coarse, self.inlier_px / self.search_scale
+        else:
+            ref, inlier_px = tgt.features, self.inlier_px
+        return estimate_from_features(
+            self._features(gray_of(view), coarse),
+            ref,
+            self.fov,
+            h,
+            w,
+            s.rng,
+            detector=self.detector,
+            ratio=self.ratio,
+            inlier_px=inlier_px,
+            iterations=self.ransac_iters,
+            min_inliers=self.min_inliers,
+            pitch_limit=self.pitch_limit,
+        )
+
+    def verify(self, s: _RotSlot, view: np.ndarray) -> tuple[bool, float]:
+        """The colour check of ``view`` against the slot's target: ``(accept, score)``.
+
+        Accept when :func:`photometric_score` is at least ``verify_thresh`` and the mean chromaticities
+        differ by at most ``verify_chroma`` on every channel. ``score`` ranks candidates (the score,
+        minus 1 when the chromaticity check failed)."""
+        tgt: _Target = s.target
+        score = photometric_score(photometric_template(view), tgt.template)
+        colour_ok = float(np.abs(mean_chromaticity(view) - tgt.chroma).max()) <= self.verify_chroma
+        return (score >= self.verify_thresh and colour_ok), (score if colour_ok else score - 1.0)
+
+    def _pitch_range(self, s: _RotSlot) -> tuple[int, int]:
+        """Relative pitches that may be reachable (exact once a clamp showed a bound)."""
+        if s.lo is not None and s.hi is not None:
+            return s.lo, s.hi
+        return s.vis_max - 2 * self.pitch_bound, s.vis_min + 2 * self.pitch_bound
+
+    def _usable(self, s: _RotSlot, cand: tuple[int, int]) -> bool:
+        lo, hi = self._pitch_range(s)
+        if not lo <= cand[0] <= hi:
             return False
-        if s.mode == WALK:
-            return (s.plan_p == 0 and s.plan_y == 0) or s.since_est >= self.reestimate_every
-        return s.since_est >= self.sweep_check_every
+        r = self.reject_radius
+        return not any(
+            abs(cand[0] - p) <= r and abs(_wrap(cand[1] - y)) <= r for p, y, _ in s.rejected
+        )
 
-    def _walk_move(self, s: _Slot) -> int:
-        if abs(s.plan_y) >= abs(s.plan_p) and s.plan_y != 0:
-            a = RIGHT if s.plan_y > 0 else LEFT
-            s.plan_y -= 1 if s.plan_y > 0 else -1
+    def _reject(self, s: _RotSlot, score: float) -> None:
+        s.rejected.append((s.pose_p, s.pose_y, score))
+        s.cand = None
+        s.arrivals = 0
+        s.mode = SEARCH
+
+    # the rule ------------------------------------------------------------------------------------
+    def step(self, i: int, slot: Slot, view: np.ndarray | None) -> int:
+        s: _RotSlot = slot  # type: ignore[assignment]
+        assert view is not None and s.target is not None
+        self._account_last_move(s, view)
+        a = self._decide(s, view)
+        if a in (UP, DOWN):
+            s.prev_view = np.array(view, copy=True)
+            s.pose_p += 1 if a == UP else -1
+            s.vis_min, s.vis_max = min(s.vis_min, s.pose_p), max(s.vis_max, s.pose_p)
+        elif a in (LEFT, RIGHT):
+            s.pose_y = _wrap(s.pose_y + (1 if a == RIGHT else -1))
         else:
-            a = UP if s.plan_p > 0 else DOWN
-            s.plan_p -= 1 if s.plan_p > 0 else -1
+            s.done = True
+        if a != STOP:
+            s.since_est += 1
+        s.last = a
         return a
 
-    def _sweep_move(self, s: _Slot) -> int:
-        if s.sweep_pitch_todo != 0:
-            a = UP if s.sweep_pitch_todo > 0 else DOWN
-            s.sweep_pitch_todo -= 1 if s.sweep_pitch_todo > 0 else -1
-            return a
-        if s.sweep_yaw >= 360:  # level done: go to the next pitch level
-            nxt = (s.sweep_level + 1) % len(self.levels)
-            s.sweep_pitch_todo = self.levels[nxt] - self.levels[s.sweep_level]
-            s.sweep_level = nxt
-            s.sweep_yaw = 0
-            if s.sweep_pitch_todo != 0:
-                return self._sweep_move(s)
-        s.sweep_yaw += 1
-        return s.sweep_dir
+    def _account_last_move(self, s: _RotSlot, view: np.ndarray) -> None:
+        """Dead reckoning: a pitch move that left the view unchanged hit the bound."""
+        if s.last not in (UP, DOWN) or s.prev_view is None:
+            return
+        same = np.array_equal(view, s.prev_view)
+        s.prev_view = None
+        if not same or float(view[:, ::4, ::4].std()) < 1.0:  # a flat view cannot tell
+            return
+        up = s.last == UP
+        s.pose_p += -1 if up else 1
+        if up:
+            s.hi, s.lo = s.pose_p, s.pose_p - 2 * self.pitch_bound
+        else:
+            s.lo, s.hi = s.pose_p, s.pose_p + 2 * self.pitch_bound
+        s.queue = [q for q in s.queue if s.lo <= q[0] <= s.hi]
+        if s.mode == GOTO and s.cand is not None and not s.lo <= s.cand[0] <= s.hi:
+            s.cand, s.mode, s.arrivals = None, SEARCH, 0  # the candidate lies beyond the bound
 
-    def decide(self, s: _Slot, est: RotationEstimate | None) -> int:
-        """One step of the slot's policy given this step's estimate (``None``: none attempted)."""
-        if est is not None:
+    def _decide(self, s: _RotSlot, view: np.ndarray) -> int:
+        tgt: _Target = s.target
+        if np.array_equal(view, tgt.image):
+            return STOP  # the exact target (clean targets)
+        if s.mode == REFINE:
+            return self._refine(s, view)
+        if s.exhausted:
+            return self._finish(s, view)
+        arrived = s.mode == GOTO and s.cand == (s.pose_p, s.pose_y)
+        if s.mode == GOTO and s.cand is not None:
+            # re-estimate halfway to the candidate (estimates get better as the overlap grows)
+            every = max(self.reestimate_every, s.est_left // 2)
+        else:
+            every = self.sweep_check_every
+        if arrived or s.since_est >= every:
             s.since_est = 0
-            s.last = est
+            # the first look of an episode is at full size (easy and medium targets are often in view)
+            est = self.estimate(s, view, coarse=s.mode == SEARCH and s.looked and s.passes == 0)
+            s.looked = True
+            s.last_est = est
+            if s.mode == SEARCH:  # remember the best-looking view, the answer if nothing matches
+                score = self.verify(s, view)[1]
+                if s.best_seen is None or score > s.best_seen[2]:
+                    s.best_seen = (s.pose_p, s.pose_y, score)
             if est.valid:
-                s.seen = True
                 dp, dy = est.rounded()
-                if dp == 0 and dy == 0:
-                    s.done = True
-                    return STOP
-                if s.mode == WALK and s.plan_p == 0 and s.plan_y == 0:
-                    s.arrivals += 1
+                cand = (s.pose_p + dp, _wrap(s.pose_y + dy))
+                if (dp, dy) == (0, 0):
+                    if self._usable(s, cand) or arrived:
+                        ok, score = self.verify(s, view)
+                        if ok:
+                            return self._refine(s, view, start=True)
+                        self._reject(s, score)
+                        arrived = False
+                elif self._usable(s, cand):
+                    if s.mode == SEARCH and s.resume is None:
+                        s.resume = (s.pose_p, s.pose_y)
+                    if arrived:
+                        s.arrivals += 1
+                    s.mode, s.cand = GOTO, cand
+                    s.est_left = abs(dp) + abs(dy)
+                    arrived = False
                     if s.arrivals >= self.max_arrivals:
-                        s.done = True
-                        return STOP
-                s.mode = WALK
-                s.plan_p, s.plan_y = dp, dy
-            elif s.mode == WALK and s.plan_p == 0 and s.plan_y == 0:
-                # arrived, cannot check: the target was seen -> best guess; never seen -> sweep
-                if s.seen:
-                    s.done = True
-                    return STOP
-                s.mode = SWEEP
-        if s.mode == WALK and (s.plan_p != 0 or s.plan_y != 0):
-            a = self._walk_move(s)
-        else:
-            s.mode = SWEEP
-            a = self._sweep_move(s)
-        s.since_est += 1
-        return a
+                        arrived = True  # decide here
+            if arrived:
+                ok, score = self.verify(s, view)
+                if ok:
+                    return self._refine(s, view, start=True)
+                self._reject(s, score)
+        if s.mode == GOTO and s.cand is not None:
+            return self._walk_to(s, s.cand)
+        return self._search_move(s, view)
 
-    def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        view, target = self._check_obs(obs)
-        n, _, h, w = view.shape
-        actions = np.full(n, STOP, dtype=np.int64)
-        active = [i for i, s in enumerate(self.slots) if not s.done]
-        if not active:
-            return self._as_actions(actions, view.device)
-        look = [i for i in active if self.needs_estimate(self.slots[i])]
-        need_t = [i for i in look if self.slots[i].target is None]
-        gv = rgb_to_gray(view[look]) if look else None
-        gt = rgb_to_gray(target[need_t]) if need_t else None
-        pos_v = {i: k for k, i in enumerate(look)}
-        pos_t = {i: k for k, i in enumerate(need_t)}
+    def _refine(self, s: _RotSlot, view: np.ndarray, start: bool = False) -> int:
+        """Verified, but the view is not the exact target (a corrupted target, or a rounding off by
+        one) and the estimate of this step is ambiguous (a fractional part within ``REFINE_MARGIN`` of
+        0.5) or missing: hill-climb :func:`photometric_score` at ``REFINE_SCALE`` over the one-degree
+        neighbours, scoring every pose visited once, then stop on the best."""
+        est = s.last_est
+        if start and (
+            not self.refine
+            or (
+                est is not None
+                and est.valid
+                and est.rounded() == (0, 0)
+                and abs(est.dpitch - round(est.dpitch)) < 0.5 - REFINE_MARGIN
+                and abs(est.dyaw - round(est.dyaw)) < 0.5 - REFINE_MARGIN
+            )
+        ):
+            return STOP  # the estimate is clear about this pose
+        tgt: _Target = s.target
+        if tgt.fine is None:
+            tgt.fine = photometric_template(tgt.image, REFINE_SCALE)
+        pose = (s.pose_p, s.pose_y)
+        if start:
+            s.mode, s.scores, s.queue = REFINE, {}, []
+        if pose not in s.scores:
+            s.scores[pose] = photometric_score(photometric_template(view, REFINE_SCALE), tgt.fine)
+            best = max(s.scores, key=s.scores.get)
+            if best == pose:  # a new best: score its neighbours
+                lo, hi = self._pitch_range(s)
+                p0, y0 = pose
+                around = ((p0, _wrap(y0 + 1)), (p0, _wrap(y0 - 1)), (p0 + 1, y0), (p0 - 1, y0))
+                s.queue = [q for q in around if lo <= q[0] <= hi and q not in s.scores]
+        s.queue = [q for q in s.queue if q not in s.scores]
+        goal = s.queue[0] if s.queue else max(s.scores, key=s.scores.get)
+        a = self._walk_to(s, goal)
+        return STOP if a < 0 else a
 
-        def step(i: int) -> int:
-            s = self.slots[i]
-            est = None
-            if i in pos_v:
-                if s.target is None:
-                    s.target = detect(self.detector, gt[pos_t[i]], self.n_features)  # type: ignore[index]
-                cur = detect(self.detector, gv[pos_v[i]], self.n_features)  # type: ignore[index]
-                est = estimate_from_features(
-                    cur,
-                    s.target,
-                    self.fov,
-                    h,
-                    w,
-                    s.rng,
-                    detector=self.detector,
-                    ratio=self.ratio,
-                    inlier_px=self.inlier_px,
-                    iterations=self.ransac_iters,
-                    min_inliers=self.min_inliers,
-                    pitch_limit=self.pitch_limit,
-                )
-            return self.decide(s, est)
+    def _walk_to(self, s: _RotSlot, goal: tuple[int, int]) -> int:
+        dp = goal[0] - s.pose_p
+        dy = _wrap(goal[1] - s.pose_y)
+        if abs(dy) >= abs(dp) and dy != 0:
+            return RIGHT if dy > 0 else LEFT
+        if dp != 0:
+            return UP if dp > 0 else DOWN
+        return -1  # already there
 
-        heavy = [i for i in active if i in pos_v]
-        light = [i for i in active if i not in pos_v]
-        with cv2_num_threads(self.cv2_threads if len(heavy) > 1 else None):
-            results = self.runner.map(step, heavy)
-        for i, a in zip(heavy, results):
-            actions[i] = a
-        for i in light:
-            actions[i] = step(i)
-        return self._as_actions(actions, view.device)
+    def _search_move(self, s: _RotSlot, view: np.ndarray) -> int:
+        if s.resume is not None:
+            a = self._walk_to(s, s.resume)
+            if a >= 0:
+                return a
+            s.resume = None
+        _, h, w = view.shape
+        spacing = self.row_spacing(h, w)
+        if s.row is None:
+            s.row, s.row_moves = 0, 0
+        lo, hi = self._pitch_range(s)
+        if (s.row > hi or s.row < lo) and s.rows:  # a bound found on the way: choose the row again
+            s.row = self._next_row(s, spacing)
+            if s.row is None:
+                return self._search_move(s, view) if self._exhaust(s) else self._finish(s, view)
+        if s.row > hi or s.row < lo:
+            s.row = min(max(s.row, lo), hi)
+        if s.pose_p != s.row:
+            return UP if s.row > s.pose_p else DOWN
+        row_len = 360 - int(round(self.fov / 3))
+        if s.row_moves < row_len:
+            s.row_moves += 1
+            return s.sweep_dir
+        # row done: the next one
+        s.rows.append(s.row)
+        nxt = self._next_row(s, spacing)
+        if nxt is None:
+            return self._search_move(s, view) if self._exhaust(s) else self._finish(s, view)
+        s.row, s.row_moves = nxt, 0
+        return self._search_move(s, view)
 
-    def close(self) -> None:
-        """Stop the worker threads."""
-        self.runner.close()
+    def _exhaust(self, s: _RotSlot) -> bool:
+        """Every row is done. Nothing found at all: search again with full-size views (returns True);
+        else the search is over (returns False)."""
+        if not s.rejected and s.passes == 0 and self.search_scale < 1.0:
+            s.passes, s.rows, s.row, s.row_moves = 1, [], 0, 0
+            return True
+        s.exhausted = True
+        return False
+
+    def _next_row(self, s: _RotSlot, spacing: int) -> int | None:
+        """The next search row (relative pitch), ``None`` when the rows cover every reachable pitch.
+
+        The candidates are one ``spacing`` above the highest row and below the lowest (within what is
+        known of the bounds). Once a clamp has shown where the horizon is, the one that newly covers
+        more of the task's target-pitch distribution (normal, std ``0.3 * pitch_bound`` about the
+        horizon) wins; before that, the nearer one (up on a tie)."""
+        lo, hi = self._pitch_range(s)
+        half = spacing / 2.0
+        top, bot = max(s.rows), min(s.rows)
+        options = []
+        if top + half < hi:
+            options.append(min(top + spacing, hi))
+        if bot - half > lo:
+            options.append(max(bot - spacing, lo))
+        options = [r for r in options if r not in s.rows]
+        if not options:
+            return None
+        if s.lo is None:
+            return min(options, key=lambda r: (abs(r - s.pose_p), -r))
+        horizon = s.lo + self.pitch_bound  # relative pitch of the horizon
+        sd = 0.3 * self.pitch_bound * math.sqrt(2.0)
+
+        def cdf(x: float) -> float:
+            return math.erf((x - horizon) / sd)
+
+        def gain(r: int) -> float:  # new coverage beyond [bot - half, top + half]
+            if r > top:
+                return cdf(min(r + half, hi)) - cdf(top + half)
+            return cdf(bot - half) - cdf(max(r - half, lo))
+
+        return max(options, key=lambda r: (round(gain(r), 6), -abs(r - s.pose_p)))
+
+    def _finish(self, s: _RotSlot, view: np.ndarray) -> int:
+        """Search exhausted: go to the best-scoring rejected candidate or, when no candidate ever came
+        up (e.g. a featureless sky), to the best-scoring view seen; refine there and stop."""
+        options = s.rejected + ([s.best_seen] if s.best_seen is not None else [])
+        if not options:
+            return STOP
+        best = max(options, key=lambda c: c[2])
+        a = self._walk_to(s, (best[0], best[1]))
+        if a >= 0:
+            return a
+        s.last_est = None
+        return self._refine(s, view, start=True)
