@@ -69,17 +69,17 @@ def test_invalid_images_fail_with_the_file_names(tmp_path: Path) -> None:
     ok, buf = cv2.imencode(".jpg", np.random.default_rng(1).integers(0, 256, (128, 256, 3), dtype=np.uint8))
     (root / "truncated.jpg").write_bytes(buf.tobytes()[: len(buf) // 2])
     res = _run("dataset=folder", f"dataset.root={root}", f"dataset.out_dir={tmp_path / 'out'}", cwd=tmp_path)
-    assert res.returncode != 0
+    assert res.returncode == 2
     assert "Traceback" not in res.stderr
     last = res.stderr.strip().splitlines()[-1]
-    assert last.startswith("error: 2 invalid panoramas")
+    assert last.startswith("make_dataset: error: 2 invalid panoramas")
     assert "wrong_size.png" in last and "300x200" in last and "truncated.jpg" in last
     assert not (tmp_path / "out" / "splits.json").exists()
 
 
 def test_missing_root(tmp_path: Path) -> None:
     res = _run("dataset=sun360_indoor", "dataset.root=null", cwd=tmp_path)
-    assert res.returncode != 0 and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "dataset.root is not set" in res.stderr and "dataset.root=" in res.stderr
 
 
