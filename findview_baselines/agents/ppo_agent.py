@@ -32,27 +32,15 @@ __all__ = ["PPOAgent", "load_ppo_checkpoint"]
 
 
 def load_ppo_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a PPO checkpoint safely (``weights_only=True``) on the CPU.
+    """Read a learned-agent checkpoint safely (``weights_only=True``) on the CPU.
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: not a loadable findview PPO checkpoint (message names the file).
+        ValueError: not a loadable findview checkpoint (message names the file).
     """
-    try:
-        from findview_baselines.rl.checkpoint import load_checkpoint
-    except ImportError:  # pragma: no cover - older trainer without the checkpoint module
-        load_checkpoint = None
-    if load_checkpoint is not None:
-        return load_checkpoint(path, map_location="cpu")
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise ValueError(f"{path} is not a loadable findview PPO checkpoint: {type(err).__name__}: {err}") from err
-    if not isinstance(state, dict) or "signature" not in state or "policy" not in state:
-        raise ValueError(f"{path} is not a findview PPO checkpoint (no 'signature' / 'policy' entries)")
-    return state
+    from findview_baselines.rl.checkpoint import load_checkpoint
+
+    return load_checkpoint(path, map_location="cpu")
 
 
 class PPOAgent(Agent):
@@ -66,7 +54,7 @@ class PPOAgent(Agent):
 
     name = "ppo"
     #: keys of configs/agent/ppo.yaml used here; every other key (training hyper-parameters) is ignored
-    CONFIG_KEYS = ("checkpoint", "sample", "deterministic_eval", "height", "width")
+    CONFIG_KEYS = ("checkpoint", "sample", "height", "width")
 
     def __init__(
         self, policy: torch.nn.Module, num_envs: int, device: str | torch.device = "cpu", seed: int = 0, sample: bool = False
@@ -122,13 +110,11 @@ class PPOAgent(Agent):
     @classmethod
     def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "PPOAgent":
         """Factory for :func:`make_agent`: ``cfg`` holds ``checkpoint`` (required), optionally ``sample``
-        (else ``not deterministic_eval``) and the expected ``height`` / ``width``; training keys are ignored."""
+        (draw actions instead of the argmax) and the expected ``height`` / ``width``; training keys are ignored."""
         c = to_plain_dict(cfg)
         if not c.get("checkpoint"):
             raise ValueError("agent 'ppo' needs a checkpoint: pass checkpoint=<path to a .pth file>")
-        sample = c.get("sample")
-        if sample is None:
-            sample = not bool(c.get("deterministic_eval", True))
+        sample = bool(c.get("sample", False))
         return cls.from_checkpoint(
             c["checkpoint"], num_envs, device, seed, bool(sample), height=c.get("height"), width=c.get("width")
         )
