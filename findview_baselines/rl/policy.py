@@ -1,4 +1,4 @@
-"""Recurrent actor-critic policy of the FindView PPO baseline (SPEC section 8).
+"""Recurrent actor-critic policy of the FindView PPO baseline (docs/TASK.md, section PPO baseline).
 
 Data flow for one step of ``N`` environments::
 
@@ -50,7 +50,7 @@ Obs = Mapping[str, torch.Tensor]
 # Encoder
 # --------------------------------------------------------------------------------------------------
 
-# (out_channels, kernel, stride) of the three conv layers (SPEC section 8)
+# (out_channels, kernel, stride) of the three conv layers (docs/TASK.md, section PPO baseline)
 CONV_LAYERS = ((32, 8, 4), (64, 4, 2), (32, 3, 1))
 
 
