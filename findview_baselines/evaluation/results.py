@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from findview.corruptions import CATEGORIES
 from findview.episode import DIFFICULTIES
 from findview.metrics import RECORD_KEYS, format_table, summarize
 from findview.utils import atomic_write, write_json, write_text
@@ -137,12 +138,7 @@ def write_results(
 # collecting a multirun: threshold search (paper Tables 13-15) and corruption tables (Tables 8-11)
 # --------------------------------------------------------------------------------------------------
 #: corruption categories and names, in the column order of the paper's corruption tables
-CORRUPTION_CATEGORIES: dict[str, tuple[str, ...]] = {
-    "blur": ("motion_blur", "defocus_blur", "glass_blur", "gaussian_blur"),
-    "noise": ("gaussian_noise", "impulse_noise", "shot_noise", "speckle_noise"),
-    "digital": ("brightness", "contrast", "saturate", "jpeg_compression"),
-    "weather": ("snow", "spatter", "fog", "frost"),
-}
+CORRUPTION_CATEGORIES: dict[str, tuple[str, ...]] = dict(CATEGORIES)
 #: the name of "no corruption" (the ``clear`` column)
 CLEAR = "none"
 
