@@ -232,17 +232,11 @@ class PPOTrainer:
 
     def _resume_parts(self) -> dict[str, Any]:
         """The parts of the resume state that a rollout changes (environment, rollout start, RNGs)."""
-        s = self.storage
         return {
             "scheduler": self.scheduler.state_dict() if self.scheduler is not None else None,
             "env_steps": self.env_steps,
             "env": self.env.state_dict() if hasattr(self.env, "state_dict") else None,
-            "storage": {
-                "view": s.view[0].cpu().clone(),
-                "target": s.target[0].cpu().clone(),
-                "hidden": s.hidden[0].cpu().clone(),
-                "masks": s.masks[0].cpu().clone(),
-            },
+            "storage": self.storage.state_dict(),
             "episode_returns": self.episode_returns.cpu().clone(),
             "shuffle_rng": self.shuffle_generator.get_state(),
             "rng": capture_rng_state(),
@@ -286,12 +280,7 @@ class PPOTrainer:
             self.env.load_state_dict(env_state)
         saved = state.get("storage")
         if saved is not None:
-            s = self.storage
-            s.view[0].copy_(saved["view"])
-            s.target[0].copy_(saved["target"])
-            s.hidden[0].copy_(saved["hidden"])
-            s.masks[0].copy_(saved["masks"])
-            s.step = 0
+            self.storage.load_state_dict(saved)
         if state.get("episode_returns") is not None:
             self.episode_returns.copy_(state["episode_returns"])
         if state.get("shuffle_rng") is not None:

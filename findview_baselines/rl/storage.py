@@ -158,6 +158,25 @@ class RolloutStorage:
         self.aux_valid.zero_()
         self.step = 0
 
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """What a resumed run needs: the rollout's starting observation, GRU state and masks (index 0; the
+        rest of the buffer is refilled by the next rollout). CPU tensors, loadable with ``weights_only``."""
+        return {
+            "view": self.view[0].cpu().clone(),
+            "target": self.target[0].cpu().clone(),
+            "hidden": self.hidden[0].cpu().clone(),
+            "masks": self.masks[0].cpu().clone(),
+        }
+
+    def load_state_dict(self, state: Mapping[str, torch.Tensor]) -> None:
+        """Restore :meth:`state_dict`; the next rollout starts from it."""
+        self.view[0].copy_(state["view"])
+        self.target[0].copy_(state["target"])
+        self.hidden[0].copy_(state["hidden"])
+        self.masks[0].copy_(state["masks"])
+        self.aux_valid.zero_()
+        self.step = 0
+
     # ---------------------------------------------------------------------------------------------
     # Returns and advantages
     # ---------------------------------------------------------------------------------------------
