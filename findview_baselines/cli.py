@@ -264,13 +264,20 @@ def _precheck_run_dir(tool: str, cfg: DictConfig) -> None:
         shutil.rmtree(run_dir, ignore_errors=True)  # Hydra makes it; a check must leave nothing behind
 
 
+def _is_disposable(entry: Path) -> bool:
+    """Hydra's files, a log, a released run lock, or a folder holding nothing else."""
+    if entry.name in (".hydra", ".run.lock") or (entry.is_file() and entry.suffix == ".log"):
+        return True
+    return entry.is_dir() and all(_is_disposable(e) for e in entry.iterdir())
+
+
 def _remove_if_empty_run(run_dir: Path) -> None:
-    """Remove a run folder that holds nothing but Hydra's own files (a run that failed at once)."""
+    """Remove a run folder that holds no results (a run that failed before producing any)."""
     try:
         entries = list(run_dir.iterdir())
     except OSError:
         return
-    if all(e.name == ".hydra" or (e.is_file() and e.suffix == ".log") for e in entries):
+    if all(_is_disposable(e) for e in entries):
         shutil.rmtree(run_dir, ignore_errors=True)
         parent = run_dir.parent  # outputs/eval/<name>/ may be empty now
         try:

@@ -197,3 +197,15 @@ def test_user_errors_are_one_line_exit_2_and_leave_no_empty_run_folder(make_cfg,
     (run_dir / "checkpoints" / "latest.pth").write_bytes(b"\0garbage")
     with pytest.raises(UserError, match=r"latest.pth.*trainer.resume=false"):
         train(make_cfg(), run_dir)
+
+
+def test_a_training_that_fails_on_its_input_leaves_no_run_folder(tmp_path: Path) -> None:
+    run_dir = tmp_path / "outputs" / "run"
+    done = subprocess.run(
+        [sys.executable, str(REPO / "tools" / "train.py"), "dataset=folder", f"dataset.root={tmp_path / 'nowhere'}",
+         f"dataset.out_dir={tmp_path / 'data'}", f"hydra.run.dir={run_dir}", "trainer.progress=false"],
+        capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=180,
+    )
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines()[-1].startswith("train: error: ") and "nowhere" in done.stderr
+    assert not run_dir.exists()
