@@ -21,7 +21,10 @@ The policy (documented defaults, each overridable):
    never waits for a descheduled team member on a busy one. Rendering (OpenCV ``remap``) and the
    feature-based agents (OpenCV, their own thread pool) do not use torch's threads. Give CPU
    training of the full-size network more threads explicitly if the cores are free.
-3. OpenCV's own thread count is left as it is (its thread pool does not show the spin-wait problem);
+3. ``OPENBLAS_NUM_THREADS=1`` (set with the wait policy, before numpy loads, unless the user set a
+   value): numpy's matrix products run inside the agents' own thread pool, where extra BLAS threads
+   only oversubscribe the cores.
+4. OpenCV's own thread count is left as it is (its thread pool does not show the spin-wait problem);
    pass ``opencv_threads`` to change it.
 
 Who applies it: ``import findview`` does step 1 (nothing else: importing a library must not change
@@ -63,6 +66,10 @@ def set_wait_policy() -> bool:
     ``import findview``; call it yourself first thing in a script that imports torch before findview.
     """
     global _policy_at_torch_load
+    # numpy's OpenBLAS: one thread. The feature agents run numpy matrix products inside their own thread
+    # pool (one image per thread); OpenBLAS threads on top oversubscribe the cores and spin (measured:
+    # sift agent 28 -> 46 FPS on 2 idle cores). Read when numpy loads, so only effective before that.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     torch_loaded = "torch" in sys.modules
     if torch_loaded:
         if _policy_at_torch_load is None:
