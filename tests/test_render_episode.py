@@ -115,30 +115,28 @@ def test_render_episode_tool_from_dataset(tmp_path, one_image_ds):
 
 
 def test_render_episode_index_out_of_range(tmp_path, one_image_ds):
-    from hydra import compose, initialize_config_dir
+    from findview_baselines.cli import compose_config
 
     from findview_baselines.evaluation.evaluate import EvalError
 
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "configs")):
-        cfg = compose(
-            "render_episode",
-            overrides=["dataset=folder", f"dataset.root={one_image_ds['root']}", f"dataset.out_dir={one_image_ds['out']}",
+    cfg = compose_config(
+        "render_episode",
+        ["dataset=folder", f"dataset.root={one_image_ds['root']}", f"dataset.out_dir={one_image_ds['out']}",
                        "episode_index=99"],
-        )
+    )
     with pytest.raises(EvalError, match=r"episode_index=99.*3 episodes"):
         _tool_module().render(cfg, tmp_path, {"dataset": "folder"}, [])
 
 
 def test_render_episode_explicit_rotations(tmp_path, small_pano):
-    from hydra import compose, initialize_config_dir
+    from findview_baselines.cli import compose_config
 
     tool = _tool_module()
     out = tmp_path / "explicit.png"
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "configs")):
-        cfg = compose(
-            "render_episode",
-            overrides=[f"image={small_pano}", "init=[0,0]", "target=[10,-40]", f"out={out}", "sim.height=48", "sim.width=64"],
-        )
+    cfg = compose_config(
+        "render_episode",
+        [f"image={small_pano}", "init=[0,0]", "target=[10,-40]", f"out={out}", "sim.height=48", "sim.width=64"],
+    )
     path = tool.render(cfg, tmp_path, {}, [])
     assert path == out
     img = cv2.imread(str(out))
@@ -146,11 +144,9 @@ def test_render_episode_explicit_rotations(tmp_path, small_pano):
 
     from findview_baselines.evaluation.evaluate import EvalError
 
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "configs")):
-        cfg = compose("render_episode", overrides=[f"image={small_pano}", "init=[0,0]"])
+    cfg = compose_config("render_episode", [f"image={small_pano}", "init=[0,0]"])
     with pytest.raises(EvalError, match="target"):
         tool.render(cfg, tmp_path, {}, [])
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "configs")):
-        cfg = compose("render_episode", overrides=[f"image={small_pano}", "init=[80,0]", "target=[0,0]"])
+    cfg = compose_config("render_episode", [f"image={small_pano}", "init=[80,0]", "target=[0,0]"])
     with pytest.raises(EvalError, match="pitch 80"):
         tool.render(cfg, tmp_path, {}, [])

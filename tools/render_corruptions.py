@@ -20,7 +20,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from findview_baselines.cli import ToolContext, run_tool
 
@@ -62,34 +62,20 @@ def corruption_grid(view: np.ndarray, severity: int, seed: int = 0, labels: bool
     return grid
 
 
-def _rotation(value, what: str) -> tuple[int, int]:
-    from findview_baselines.evaluation.evaluate import EvalError
-
-    try:
-        seq = list(OmegaConf.to_container(value) if OmegaConf.is_config(value) else value)
-        if len(seq) != 2 or any(float(v) != int(float(v)) for v in seq):
-            raise ValueError
-        return int(float(seq[0])), int(float(seq[1]))
-    except (TypeError, ValueError):
-        raise EvalError(f"{what} must be [pitch, yaw] in integer degrees, got {value!r}") from None
-
-
 def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
     """Render the target view, corrupt it 16 ways and write the grid; returns the PNG path."""
-    import cv2
 
     from findview.geometry import wrap_yaw
     from findview.imageio import load_panorama
-    from findview.utils import atomic_write
     from findview_baselines.evaluation.evaluate import EvalError, resolve_episodes
-    from findview_baselines.evaluation.viz import render_views
+    from findview_baselines.evaluation.viz import parse_rotation, render_views, write_png
 
     severity = int(cfg.severity)
     if cfg.get("image") is not None or cfg.get("target") is not None:
         if cfg.get("image") is None or cfg.get("target") is None:
             raise EvalError("explicit mode needs both image= and target=")
         image = str(Path(str(cfg.image)).expanduser())
-        target = _rotation(cfg.target, "target")
+        target = parse_rotation(cfg.target, "target")
         name = Path(image).stem
     else:
         episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides)
@@ -113,14 +99,7 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     if out.suffix.lower() != ".png":
         raise EvalError(f"out= must name a .png file, got {out}")
 
-    def _write(tmp: str) -> None:
-        ok, buf = cv2.imencode(".png", cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
-        if not ok:
-            raise RuntimeError("PNG encoding failed")
-        with open(tmp, "wb") as f:
-            f.write(buf.tobytes())
-
-    atomic_write(out, _write)
+    write_png(out, grid)
     log.info("%s: target %s under 16 corruptions at severity %d -> %s (%dx%d)", name, target, severity, out,
              grid.shape[1], grid.shape[0])
     return out

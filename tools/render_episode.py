@@ -19,34 +19,20 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from findview_baselines.cli import ToolContext, run_tool
 
 log = logging.getLogger("findview.render")
 
 
-def _rotation(value, what: str) -> tuple[int, int]:
-    from findview_baselines.evaluation.evaluate import EvalError
-
-    try:
-        seq = list(OmegaConf.to_container(value) if OmegaConf.is_config(value) else value)
-        if len(seq) != 2 or any(float(x) != int(float(x)) for x in seq):
-            raise ValueError
-        return int(float(seq[0])), int(float(seq[1]))
-    except (TypeError, ValueError):
-        raise EvalError(f"{what} must be [pitch, yaw] in integer degrees, got {value!r}") from None
-
-
 def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
     """Make the picture; returns the PNG path."""
-    import cv2
 
     from findview.imageio import load_panorama
     from findview.geometry import wrap_yaw
-    from findview.utils import atomic_write
     from findview_baselines.evaluation.evaluate import EvalError, resolve_episodes
-    from findview_baselines.evaluation.viz import episode_figure
+    from findview_baselines.evaluation.viz import episode_figure, parse_rotation, write_png
 
     fov, height, width = float(cfg.sim.fov), int(cfg.sim.height), int(cfg.sim.width)
     pitch_bound = int(cfg.task.pitch_bound)
@@ -56,7 +42,7 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
         if missing:
             raise EvalError(f"explicit mode needs image=, init= and target=; missing: {', '.join(missing)}")
         image = str(Path(str(cfg.image)).expanduser())
-        init, target = _rotation(cfg.init, "init"), _rotation(cfg.target, "target")
+        init, target = parse_rotation(cfg.init, "init"), parse_rotation(cfg.target, "target")
         name = Path(image).stem
     else:
         episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides)
@@ -82,14 +68,7 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     if out.suffix.lower() != ".png":
         raise EvalError(f"out= must name a .png file, got {out}")
 
-    def _write(tmp: str) -> None:
-        ok, buf = cv2.imencode(".png", cv2.cvtColor(fig, cv2.COLOR_RGB2BGR))
-        if not ok:
-            raise RuntimeError("PNG encoding failed")
-        with open(tmp, "wb") as f:
-            f.write(buf.tobytes())
-
-    atomic_write(out, _write)
+    write_png(out, fig)
     log.info("episode %s: init %s, target %s -> %s (%dx%d)", name, init, target, out, fig.shape[1], fig.shape[0])
     return out
 

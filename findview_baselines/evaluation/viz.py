@@ -327,3 +327,34 @@ def write_video(
             os.unlink(tmp)
         raise
     return path
+
+
+def parse_rotation(value: object, what: str) -> tuple[int, int]:
+    """``[pitch, yaw]`` (a list or config list of integer degrees) -> ``(pitch, yaw)``.
+
+    Raises:
+        ValueError: one line naming ``what`` and the value.
+    """
+    from omegaconf import OmegaConf
+
+    try:
+        seq = list(OmegaConf.to_container(value) if OmegaConf.is_config(value) else value)  # type: ignore[arg-type]
+        if len(seq) != 2 or any(float(v) != int(float(v)) for v in seq):
+            raise ValueError
+        return int(float(seq[0])), int(float(seq[1]))
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be [pitch, yaw] in integer degrees, got {value!r}") from None
+
+
+def write_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
+    """Write an ``(H, W, 3)`` uint8 RGB picture as PNG, atomically (temp file + rename)."""
+    from findview.utils import atomic_write
+
+    def _write(tmp: str) -> None:
+        ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        if not ok:
+            raise RuntimeError("PNG encoding failed")
+        with open(tmp, "wb") as f:
+            f.write(buf.tobytes())
+
+    return atomic_write(path, _write)
