@@ -209,3 +209,20 @@ def test_cli_exit_status_in_a_subprocess(tmp_path):
     )
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "| easy | orb | **1.00** |" in proc.stdout
+
+
+def test_clear_runs_of_a_severity_sweep_are_not_conflicts(tmp_path):
+    """`corruption.name=none,... corruption.severity=1,3` runs the clear setting once per severity: equal
+    results are the same cell (no warning); different results for the same settings are still reported."""
+    eps3 = {"easy": 1.0, "medium": 2.0, "hard": 3.0}
+    for name in ("0", "1"):
+        fake_run(tmp_path / "same", name, eps3, meta={"corruption": "none", "severity": 0})
+    fake_run(tmp_path / "same", "2", eps3, meta={"corruption": "fog", "severity": 1})
+    warnings: list[str] = []
+    text = corruption_table(find_runs(tmp_path / "same"), warn=warnings.append)
+    assert warnings == []
+    assert table_rows(text, "severity 1")[1:] == ["| orb | 2.00 | 2.00 |"]
+    fake_run(tmp_path / "differ", "0", eps3, meta={"corruption": "none", "severity": 0})
+    fake_run(tmp_path / "differ", "1", {**eps3, "hard": 9.0}, meta={"corruption": "none", "severity": 0})
+    corruption_table(find_runs(tmp_path / "differ"), warn=warnings.append)
+    assert len(warnings) == 1 and "hard" in warnings[0]

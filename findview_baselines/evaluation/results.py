@@ -631,13 +631,17 @@ def corruption_table(runs: Sequence[EvalRun], metric: str = "eps", warn: Any = N
                 cells = []
                 for _, c in cols:
                     cell_runs = [r for r in in_table if labels[r.path] == label and r.corruption == c]
-                    dup = {}
+                    dup: dict[str, Path] = {}
+                    dup_summary: dict[str, Any] = {}
                     for r in cell_runs:
                         for d in r.difficulties():
-                            if d in dup and warn is not None:
+                            # a severity sweep runs `none` once per severity: identical clear runs are no conflict
+                            same_clear = c == CLEAR and d in dup and r.summary[d] == dup_summary.get(d)
+                            if d in dup and warn is not None and not same_clear:
                                 warn(f"{dup[d]} and {r.path} have the same settings ({label}, {c}, severity "
                                      f"{sev}, {d}); the table shows {r.path}")
                             dup[d] = r.path
+                            dup_summary[d] = r.summary[d]
                     value, complete = mean_over_difficulties(cell_runs, metric)
                     s = _fmt_value(value, metric)
                     cells.append(s + ("*" if not complete and not math.isnan(value) else ""))
