@@ -64,7 +64,10 @@ class SimConfig:
     device: str = "auto"
     """Where panoramas, views and the environment state live: auto (cuda if available) | cpu | cuda | cuda:N."""
     bank_mb: float = 2048.0
-    """Memory bound of the decoded-panorama bank (LRU), MiB."""
+    """Memory bound of the decoded-panorama bank on sim.device, MiB. When it holds every panorama the run
+    uses (e.g. the whole train split: SUN360 indoor at 1024x512 is about 18 GB, 1.5 MiB a panorama),
+    each is decoded once and stays resident as uint8; otherwise the bank is an LRU cache that streams from
+    disk with background prefetch of upcoming episodes' panoramas."""
     equi_height: Optional[int] = None
     """Panorama height He in pixels that every panorama is resized to (width 2 He); null keeps the first
     panorama's size (all panoramas of a data set normally share it)."""

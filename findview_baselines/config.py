@@ -189,7 +189,8 @@ class RotationAgentConfig:
         check(self.reject_radius >= 0, "agent.reject_radius", self.reject_radius, "0 or more degrees")
 
 
-POLICY_VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation")
+POLICY_VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct")
+POLICY_PRECISIONS = ("fp32", "bf16")  # findview_baselines.rl.policy.PRECISIONS
 
 
 @dataclass
@@ -201,15 +202,37 @@ class PPOAgentConfig(PPOConfig):
     name: str = "ppo"
     """Agent name."""
     variant: str = "early_fusion"
-    """Network: early_fusion (the paper's) | goal_encoder | siamese | correlation."""
+    """Network: early_fusion (the paper's) | goal_encoder | siamese | correlation | direct."""
     hidden_size: int = 512
     """Encoder feature size and GRU state size."""
+    fine_shifts: int = 0
+    """correlation / direct only: fine photometric cost map of view vs target for pixel shifts -k..k per axis at
+    the full input resolution (k = fine_shifts pixels; 0 = off). Part of the checkpoint signature."""
+    fine_scales: int = 1
+    """Pyramid levels of that cost map (2x average pooling per level; level s covers k * 2^s pixels);
+    1 = full resolution only. Part of the checkpoint signature."""
     sample: bool = False
     """Draw actions from the policy at validation / evaluation time instead of taking the argmax."""
+    precision: str = "fp32"
+    """Encoder compute dtype while training: fp32 | bf16 (torch.autocast on the policy's device, CPU or
+    CUDA; the GRU, the heads and the weights stay float32, so checkpoints do not depend on it)."""
+    channels_last: bool = False
+    """Conv weights and encoder inputs in channels-last (NHWC) memory format (faster convolutions on
+    recent GPUs and CPUs; results equal up to float rounding)."""
+    compile: bool = False
+    """torch.compile the encoder (pays on CUDA for long runs; the first updates compile, seconds to a
+    minute). Checkpoint keys are unchanged."""
 
     def __post_init__(self) -> None:
         check(self.variant in POLICY_VARIANTS, "agent.variant", self.variant, " | ".join(POLICY_VARIANTS))
+        check(self.precision in POLICY_PRECISIONS, "agent.precision", self.precision, " | ".join(POLICY_PRECISIONS))
         check(self.hidden_size >= 1, "agent.hidden_size", self.hidden_size, "a positive size")
+        check(
+            self.fine_shifts == 0 or (self.fine_shifts > 0 and self.variant in ("correlation", "direct")),
+            "agent.fine_shifts", self.fine_shifts,
+            "0 (off), or a positive number of pixels with variant=correlation or direct",
+        )
+        check(self.fine_scales >= 1, "agent.fine_scales", self.fine_scales, "a positive number of pyramid levels")
         check(self.lr > 0, "agent.lr", self.lr, "a positive learning rate")
         check(self.adam_eps > 0, "agent.adam_eps", self.adam_eps, "a positive number")
         check(self.rollout_steps >= 1, "agent.rollout_steps", self.rollout_steps, "a positive number of steps")
@@ -263,6 +286,16 @@ class TrainerConfig:
     """CPU threads for torch (null: findview's policy, see findview.runtime)."""
     dagger: DAggerConfig = field(default_factory=DAggerConfig)
     """DAgger settings (used when algorithm=dagger)."""
+    distributed: bool = False
+    """Train with several processes started by torchrun (DD-PPO: gradients averaged over ranks; num_envs is
+    per rank, rank r of K takes train images r::K; rank 0 writes every file). See docs/CLUSTER.md."""
+    dist_backend: str = "auto"
+    """torch.distributed backend of trainer.distributed: auto (nccl on CUDA, gloo on CPU) | nccl | gloo."""
+    dist_timeout_min: float = 60.0
+    """Minutes a rank may wait for the others (rank 0 validates alone meanwhile) before the job fails."""
+    preempt_fraction: float = 0.0
+    """DD-PPO straggler preemption (PPO under torchrun): once this fraction of the ranks has collected its
+    rollout, the others stop collecting (after at least 25% of it); 0 = off, e.g. 0.6."""
 
     def __post_init__(self) -> None:
         check(self.algorithm in ALGORITHMS, "trainer.algorithm", self.algorithm, " | ".join(ALGORITHMS))
@@ -271,6 +304,11 @@ class TrainerConfig:
         for key in ("val_interval", "log_interval", "checkpoint_interval"):
             value = getattr(self, key)
             check(value >= 0, f"trainer.{key}", value, "0 or a positive number of updates")
+        check(self.dist_backend in ("auto", "nccl", "gloo"), "trainer.dist_backend", self.dist_backend,
+              "auto | nccl | gloo")
+        check(self.dist_timeout_min > 0, "trainer.dist_timeout_min", self.dist_timeout_min, "a positive number of minutes")
+        check(0.0 <= self.preempt_fraction <= 1.0, "trainer.preempt_fraction", self.preempt_fraction,
+              "a fraction of the ranks in [0, 1] (0 = off)")
         for key in ("val_episodes", "val_num_envs", "val_max_steps", "stop_after", "torch_threads"):
             value = getattr(self, key)
             check(value is None or value >= 1, f"trainer.{key}", value, "null or a positive integer")

@@ -21,6 +21,8 @@ from findview.task.oracle import (
     oracle_actions,
     oracle_actions_for,
     overlap_mask,
+    pan_action_mask,
+    pan_actions,
     rotation_labels,
     rotation_targets,
     sweep_action_mask,
@@ -148,6 +150,14 @@ def test_set_nll_by_hand() -> None:
     assert set_nll(logits, accepted, weights).item() == pytest.approx(
         (expected[0] + 3 * expected[1]).item() / 4, rel=1e-5
     )
+    # row weights (search_weight on no-overlap rows) multiply the class weights
+    rows = torch.tensor([0.5, 1.0])
+    assert set_nll(logits, accepted, weights, rows).item() == pytest.approx(
+        (0.5 * expected[0] + 3 * expected[1]).item() / 3.5, rel=1e-5
+    )
+    assert set_nll(logits, accepted, None, rows).item() == pytest.approx(
+        (0.5 * expected[0] + expected[1]).item() / 1.5, rel=1e-5
+    )
     # a one-action set is the cross-entropy
     one_hot = torch.nn.functional.one_hot(torch.tensor([2, 4]), 5).bool()
     expected_ce = torch.nn.functional.cross_entropy(logits, torch.tensor([2, 4]))
@@ -184,6 +194,32 @@ def test_sweep_prior_always_reaches_the_target_without_looping() -> None:
     assert (moves >= l1_distance(p0, y0, tp, ty)).all()
 
 
+def test_pan_prior_pans_right_at_the_current_pitch_until_the_views_overlap() -> None:
+    # no overlap: 10 below and 150 left -> RIGHT (not the sweep's DOWN); 100 above, level -> UP (no pan
+    # reaches an overlap); overlapping 30 left -> LEFT like the oracle; on target -> STOP
+    args = (t(10, -50, 0, 5), t(0, 0, 0, 5), t(0, 50, 0, 5), t(-150, 0, -30, 5))
+    assert pan_actions(*args, fov=90).tolist() == [RIGHT, UP, LEFT, STOP]
+    mask = pan_action_mask(*args, fov=90).int().tolist()
+    assert mask == [[0, 0, 0, 1, 0], [1, 0, 0, 0, 0], [0, 0, 1, 0, 0], [0, 0, 0, 0, 1]]
+    # the border with the oracle is no trap: 90 left (overlap) -> LEFT, 91 left -> RIGHT (away)
+    assert pan_actions(t(0, 0), t(0, 0), t(0, 0), t(-90, -91), fov=90).tolist() == [LEFT, RIGHT]
+
+
+def test_pan_prior_always_reaches_the_target_without_looping() -> None:
+    g = torch.Generator().manual_seed(3)
+    n = 300
+    p0, tp = torch.randint(-60, 61, (n,), generator=g), torch.randint(-60, 61, (n,), generator=g)
+    y0, ty = torch.randint(-179, 181, (n,), generator=g), torch.randint(-179, 181, (n,), generator=g)
+    moves, pitch, yaw = walk(lambda *s: pan_actions(*s, fov=90), p0, y0, tp, ty, 800)
+    assert (moves >= 0).all() and torch.equal(pitch, tp) and torch.equal(yaw, ty)
+    # a no-overlap start pans right at most 360 - 2 * 90 + 1 degrees before the views overlap, then the
+    # shortest path from there (at most |dpitch| + 90)
+    assert (moves <= (tp - p0).abs() + 181 + 90).all()
+    assert (moves >= l1_distance(p0, y0, tp, ty)).all()
+    overlapping = overlap_mask(p0, y0, tp, ty, fov=90)
+    assert torch.equal(moves[overlapping], l1_distance(p0, y0, tp, ty)[overlapping])
+
+
 def test_labels_from_an_env_object() -> None:
     env = SimpleNamespace(
         pitch=t(0, 0), yaw=t(0, 0), target_pitch=t(0, 0), target_yaw=t(-150, -20), step_deg=1,
@@ -191,6 +227,8 @@ def test_labels_from_an_env_object() -> None:
     )
     assert oracle_actions_for(env).tolist() == [LEFT, LEFT]
     assert oracle_actions_for(env, search="sweep").tolist() == [RIGHT, LEFT]
+    assert oracle_actions_for(env, search="pan").tolist() == [RIGHT, LEFT]
+    assert optimal_action_mask_for(env, search="pan").int().tolist() == [[0, 0, 0, 1, 0], [0, 0, 1, 0, 0]]
     torch.testing.assert_close(rotation_labels(env), torch.tensor([[0.0, -150 / 90, 0.0], [0.0, -20 / 90, 1.0]]))
     with pytest.raises(ValueError, match="search prior"):
         oracle_actions_for(env, search="spiral")
@@ -308,6 +346,29 @@ def test_rollout_labels_and_oracle_only_rollout_finishes_episodes_perfectly(pano
         assert np.isfinite(stats[key]), key
 
 
+def test_search_weight_marks_exactly_the_no_overlap_steps(panoramas) -> None:
+    """With the pan prior, a step weighs search_weight iff its label is the search's lone RIGHT (no overlap;
+    pitches within +-20 keep |dpitch| below the FoV), and every other step weighs 1."""
+    torch.manual_seed(0)
+    env = sampled_env(panoramas, 4, 32, 20, 200, seed=6)
+    env.source.level = 3  # easy, medium and hard starts
+    policy = Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2)
+    cfg = DAggerConfig(rollout_steps=32, seq_len=8, buffer_size=2000, batch_sequences=4, beta_end=1.0,
+                       search_prior="pan", labels="set", search_weight=0.25)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=10)
+    trainer.start()
+    for _ in range(3):
+        trainer.train_update()
+    n = len(trainer.buffer)
+    weights = trainer.buffer.weights[:n].flatten()
+    labels = trainer.buffer.labels[:n].flatten(0, 1)
+    searching = weights == 0.25
+    assert bool(searching.any()) and bool((weights[~searching] == 1.0).all())
+    only_right = (labels.int() == torch.tensor([0, 0, 0, 1, 0])).all(dim=1)
+    assert torch.equal(searching, only_right & searching)  # every down-weighted step is a pure "pan right"
+    assert trainer.buffer.state_dict()["weights"].shape == (n, 8)
+
+
 def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True):
     """A small DAgger run (correlation policy, aux loss on, set labels, tiny FIFO buffer that wraps, curriculum);
     resumes from ``state`` when given."""
@@ -317,6 +378,7 @@ def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True
     cfg = DAggerConfig(
         rollout_steps=8, seq_len=4, buffer_size=24, batch_sequences=3, epochs=2.0, beta_decay_updates=3,
         aux_coef=0.5 if aux else 0.0, sample_actions=True, stop_weight=2.0, linear_decay=True, labels="set",
+        search_prior="pan", search_weight=0.5,
     )
     levels: list[int] = []
     trainer = DAggerTrainer(env, policy, cfg, total_updates=6, scheduler=DifficultyScheduler(6), set_level=lambda k: (

@@ -9,13 +9,21 @@ TensorBoard scalars in ``tb/`` and the config. Re-running the same command resum
 (``trainer.resume=false`` starts over). SIGTERM or Ctrl-C stop at the next safe point, write
 ``latest.pth`` and exit with 143 / 130. Every key is documented in ``findview_baselines/config.py``.
 
+Several processes (DD-PPO, ``trainer.num_envs`` per process; docs/CLUSTER.md)::
+
+    torchrun --standalone --nproc_per_node=K tools/train.py ... trainer.distributed=true
+
+Only rank 0 writes the run folder (Hydra's files, log, checkpoints, TensorBoard); the other ranks log to
+the console. A signal to any rank (SIGTERM, SIGINT, SIGUSR1) stops every rank at the same safe point.
+
 Exit status: 0 done (or stopped by ``trainer.stop_after``), 1 training diverged, 2 a problem with the
-input (one line on stderr), 128 + signal when stopped by a signal.
+input (one line on stderr), 128 + signal when stopped by a signal (143 SIGTERM, 130 SIGINT, 138 SIGUSR1).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
 
 from omegaconf import DictConfig
@@ -41,5 +49,16 @@ def main(cfg: DictConfig, ctx: ToolContext) -> None:
     )
 
 
+def _rank_overrides(argv: list[str]) -> tuple[list[str], bool]:
+    """(argv, whether to pre-check the run folder) for this process: under torchrun, ranks other than 0
+    write no Hydra files and log to the console only (rank 0 writes the run folder), and skip the
+    pre-check of the folder's lock (rank 0 may already hold it)."""
+    rank = int(os.environ.get("RANK", "0") or 0)
+    if rank == 0:
+        return argv, True
+    return [*argv, "hydra.output_subdir=null", "hydra/job_logging=stdout"], False
+
+
 if __name__ == "__main__":
-    run_tool("train", main, check_run_dir=True)
+    sys.argv[1:], check_dir = _rank_overrides(sys.argv[1:])
+    run_tool("train", main, check_run_dir=check_dir)

@@ -5,6 +5,13 @@ batched renderer can address any mix of panoramas with a single gather, and rese
 copies a panorama. Slots in use by running episodes are pinned (reference counted); the least recently
 used unpinned slot is recycled. Decoding (OpenCV, which releases the GIL) runs in background threads
 so that :meth:`PanoramaBank.prefetch` hides it behind simulation steps.
+
+Sizing (``sim.bank_mb``): when the bound holds every panorama the environments may use (the whole
+train split), each is decoded once, on first use, and stays on the device as uint8; nothing is
+evicted, and an episode start costs no host-device copy. Otherwise the bank is a bounded cache that
+streams from disk: least recently used unpinned panoramas are evicted, the environment asks the bank to
+prefetch (decode in the background) the panoramas of its upcoming episodes, and on CUDA the decoded
+image reaches its slot through a page-locked buffer with a non-blocking copy.
 """
 
 from __future__ import annotations
@@ -169,7 +176,11 @@ class PanoramaBank:
             slot = self._free.pop()
         else:
             slot = self._evict()
-        self.slots[slot].copy_(torch.from_numpy(img), non_blocking=False)
+        src = torch.from_numpy(img)
+        if self.device.type == "cuda":  # page-locked staging: the copy is queued, the host does not wait
+            self.slots[slot].copy_(src.pin_memory(), non_blocking=True)
+        else:
+            self.slots[slot].copy_(src)
         self._slot_of[path] = slot
         self._path_of[slot] = path
         self._refs[slot] = 0

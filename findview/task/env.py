@@ -2,6 +2,11 @@
 
 ``N`` episodes step together from one ``(N,)`` tensor of actions. All per-episode state (rotations,
 targets, step counters) is a tensor on the simulator's device; panoramas live in the simulator's bank.
+
+Host-device traffic per :meth:`FindViewEnv.step` is one device-to-host copy of a small ``(9, N)`` long
+tensor (which actions were valid, which episodes ended or moved, their final rotations: what the episode
+records and the Python-side episode sources need), whatever ``N``; plus, when episodes start, one
+host-to-device copy of their rotations. Nothing else waits for the device.
 """
 
 from __future__ import annotations
@@ -90,6 +95,7 @@ class FindViewEnv:
         self.new_episode = z(torch.bool)
         self.episodes: list[Episode | None] = [None] * n
         self._has_slot = [False] * n
+        self._slot_host = [0] * n  # host copy of self.slots (no device read to release a panorama)
         # (N, H, W, 3) buffers, rendered into in place; exposed as (N, 3, H, W) channels-last views
         self._view_buf = simulator.new_buffer(n)
         self._target_buf = simulator.new_buffer(n)
@@ -126,9 +132,7 @@ class FindViewEnv:
         a = torch.as_tensor(actions).to(self.device).long().reshape(-1)
         if a.shape[0] != self.num_envs:
             raise ValueError(f"expected {self.num_envs} actions, got shape {tuple(a.shape)}")
-        if bool(((a < 0) | (a >= NUM_ACTIONS)).any()):
-            raise ValueError(f"actions must be in [0, {NUM_ACTIONS}), got {a.tolist()}")
-        if bool((self.finished & self.active).any()):
+        if not self.auto_reset and bool((self.finished & self.active).any()):  # (finished needs auto_reset off)
             ids = torch.nonzero(self.finished & self.active).flatten().tolist()
             raise RuntimeError(
                 f"envs {ids} finished their episode; call reset_envs({ids}) before stepping them (auto_reset=False)"
@@ -137,30 +141,36 @@ class FindViewEnv:
         s = self.step_deg
         dp = ((a == Action.UP).long() - (a == Action.DOWN).long()) * s * run
         dy = ((a == Action.RIGHT).long() - (a == Action.LEFT).long()) * s * run
-        self.pitch = (self.pitch + dp).clamp(-self.pitch_bound, self.pitch_bound)
-        self.yaw = 180 - torch.remainder(180 - (self.yaw + dy), 360)
-        self.steps = self.steps + run.long()
+        pitch = (self.pitch + dp).clamp(-self.pitch_bound, self.pitch_bound)
+        yaw = 180 - torch.remainder(180 - (self.yaw + dy), 360)
+        steps = self.steps + run.long()
         called_stop = run & (a == Action.STOP)
-        forced = run & ~called_stop & (self.steps >= self.max_steps)
+        forced = run & ~called_stop & (steps >= self.max_steps)
         done = called_stop | forced
-        eps = l1_distance(self.pitch, self.yaw, self.target_pitch, self.target_yaw)
+        eps = l1_distance(pitch, yaw, self.target_pitch, self.target_yaw)
+        moved = run & ~done & ((dp != 0) | (dy != 0))
+        bad = (a < 0) | (a >= NUM_ACTIONS)
+        # the step's only device -> host copy: (9, N) longs
+        host = torch.stack([bad, done, moved, run, pitch, yaw, steps, eps, called_stop]).long().cpu()
+        if bool(host[0].any()):  # before any state changes
+            raise ValueError(f"actions must be in [0, {NUM_ACTIONS}), got {a.tolist()}")
         reward = compute_reward(self.reward_cfg, self.prev_eps, eps, called_stop, forced) * run
-        self.prev_eps = eps
-        self.total_steps += int(run.sum())  # one sync per step (also needed for done handling)
+        self.pitch, self.yaw, self.steps, self.prev_eps = pitch, yaw, steps, eps
+        self.total_steps += int(host[3].sum())
 
         infos: list[dict | None] = [None] * self.num_envs
         self.new_episode = torch.zeros_like(self.new_episode)
-        done_ids: list[int] = []
-        if bool(done.any()):
-            done_ids = torch.nonzero(done).flatten().tolist()
-            rec = torch.stack([self.pitch, self.yaw, self.steps, eps, called_stop.long()])[:, done_ids].tolist()
+        done_ids: list[int] = torch.nonzero(host[1]).flatten().tolist()
+        if done_ids:
+            rec = host[4:, done_ids].tolist()  # pitch, yaw, steps, eps, called_stop of the finished ones
             for k, i in enumerate(done_ids):
                 infos[i] = self._record(i, rec[0][k], rec[1][k], rec[2][k], bool(rec[4][k]), rec[3][k])
-        moved = run & ~done & ((dp != 0) | (dy != 0))
-        move_ids = torch.nonzero(moved).flatten()
+        move_ids = torch.nonzero(host[2]).flatten()
         if move_ids.numel():
+            move_ids = move_ids.to(self.device, non_blocking=True)
             self.sim.render_into(
-                self._view_buf, move_ids, self.slots[move_ids], self.pitch[move_ids], self.yaw[move_ids]
+                self._view_buf, move_ids, self.slots[move_ids], self.pitch[move_ids], self.yaw[move_ids],
+                validate=False,  # pitch is clamped above
             )
         if done_ids:
             if self.auto_reset:
@@ -197,7 +207,7 @@ class FindViewEnv:
         bank = self.sim.bank
         for i in range(self.num_envs):
             if self._has_slot[i]:
-                bank.release(int(self.slots[i]))
+                bank.release(self._slot_host[i])
                 self._has_slot[i] = False
         self.episodes = [None if e is None else Episode.from_dict(e) for e in state["episodes"]]
         dev = self.device
@@ -209,7 +219,8 @@ class FindViewEnv:
         ids = [i for i, e in enumerate(self.episodes) if e is not None]
         for i in ids:
             ep = self.episodes[i]
-            self.slots[i] = bank.acquire(ep.image)
+            self._slot_host[i] = bank.acquire(ep.image)
+            self.slots[i] = self._slot_host[i]
             self._has_slot[i] = True
             self.target_pitch[i], self.target_yaw[i] = ep.target_pitch, wrap_yaw(ep.target_yaw)
         self.prev_eps = l1_distance(self.pitch, self.yaw, self.target_pitch, self.target_yaw)
@@ -251,6 +262,10 @@ class FindViewEnv:
         info = getattr(self.target_transform, "info", None)
         return dict(info(ep)) if info is not None else {"corruption": "none", "severity": 0}
 
+    def _upload(self, values: list) -> torch.Tensor:
+        """A host list as a long tensor on the device, copied without waiting for queued device work."""
+        return torch.tensor(values, dtype=torch.long).to(self.device, non_blocking=True)
+
     def _start(self, env_ids: list[int]) -> None:
         """Begin the source's next episodes in ``env_ids`` (slots whose source is exhausted go inactive)."""
         bank = self.sim.bank
@@ -259,7 +274,7 @@ class FindViewEnv:
         for i in env_ids:
             ep = self.source.next()
             if self._has_slot[i]:
-                bank.release(int(self.slots[i]))
+                bank.release(self._slot_host[i])
                 self._has_slot[i] = False
             self.episodes[i] = ep
             if ep is None:
@@ -267,17 +282,18 @@ class FindViewEnv:
             if abs(ep.init_pitch) > self.pitch_bound or abs(ep.target_pitch) > self.pitch_bound:
                 raise ValueError(f"episode {ep.episode_id}: pitch outside [-{self.pitch_bound}, {self.pitch_bound}]")
             slot = bank.acquire(ep.image)
+            self._slot_host[i] = slot
             self._has_slot[i] = True
             started.append(i)
             rows.append([slot, ep.init_pitch, ep.init_yaw, ep.target_pitch, ep.target_yaw])
-        ids = torch.tensor(env_ids, dtype=torch.long, device=self.device)
+        ids = self._upload(env_ids)
         act = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         act[ids] = True
         self.active = torch.where(act, False, self.active)
         self.finished = torch.where(act, False, self.finished)
         if started:
-            sid = torch.tensor(started, dtype=torch.long, device=self.device)
-            r = torch.tensor(rows, dtype=torch.long, device=self.device)
+            sid = self._upload(started)
+            r = self._upload(rows)
 
             self.slots[sid], self.pitch[sid], self.yaw[sid] = r[:, 0], r[:, 1], wrap_yaw(r[:, 2])
             self.target_pitch[sid], self.target_yaw[sid] = r[:, 3], wrap_yaw(r[:, 4])
@@ -285,8 +301,11 @@ class FindViewEnv:
             self.prev_eps[sid] = l1_distance(self.pitch[sid], self.yaw[sid], self.target_pitch[sid], self.target_yaw[sid])
             self.active[sid] = True
             self.new_episode[sid] = True
-            self.sim.render_into(self._view_buf, sid, self.slots[sid], self.pitch[sid], self.yaw[sid])
-            self.sim.render_into(self._target_buf, sid, self.slots[sid], self.target_pitch[sid], self.target_yaw[sid])
+            # pitches were checked against the bound above: no device-side validation (a sync on CUDA)
+            self.sim.render_into(self._view_buf, sid, self.slots[sid], self.pitch[sid], self.yaw[sid], validate=False)
+            self.sim.render_into(
+                self._target_buf, sid, self.slots[sid], self.target_pitch[sid], self.target_yaw[sid], validate=False
+            )
             if self.target_transform is not None:
                 for i in started:
                     t = self.target_transform(self.target[i], self.episodes[i])

@@ -27,6 +27,14 @@ Conventions (docs/TASK.md): ``+pitch`` looks up (action ``UP``), ``+yaw`` pans r
   (the target's pitch is partly visible in its content: sky, floor, ceiling), then pans ``RIGHT`` until the
   views overlap. This covers the sphere without loops (with ``|dpitch| <= fov`` a full turn always reaches
   an overlapping view) at the price of up to ``360 - 2 * fov`` extra degrees when the target lay to the left.
+- **Pan search prior** (:func:`pan_actions`): like the sweep, but where the views do not overlap it pans
+  ``RIGHT`` at the current pitch (a pitch move towards the target only while ``|dpitch| > fov``, where no
+  pan can reach an overlapping view). A learner cannot read the target's pitch from a view that shares
+  nothing with it, so the sweep's "match the pitch first" labels ask it to guess, and a greedy learner
+  that guesses ends in ``UP``/``DOWN`` two-cycles; "pan right until the target shows up" asks only
+  "do the views overlap?". With pitches in ``[-60, 60]`` and ``fov >= 60`` the pitch branch never fires.
+  The two regions do not trap a learner at their border: at ``dyaw = -fov`` the oracle moves ``LEFT``
+  (into the overlap), one degree further the pan moves ``RIGHT`` (away from it, round the sphere).
 """
 
 from __future__ import annotations
@@ -44,6 +52,8 @@ __all__ = [
     "optimal_action_mask",
     "optimal_action_mask_for",
     "oracle_actions",
+    "pan_action_mask",
+    "pan_actions",
     "oracle_actions_for",
     "overlap_mask",
     "rotation_labels",
@@ -53,7 +63,7 @@ __all__ = [
 ]
 
 ORDERS = ("pitch_first", "yaw_first", "larger_first")
-SEARCH_PRIORS = ("oracle", "sweep")
+SEARCH_PRIORS = ("oracle", "sweep", "pan")
 
 
 def _deltas(
@@ -181,11 +191,50 @@ def sweep_actions(
     return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
 
 
+def _pan_search(dp: torch.Tensor, fov: float) -> torch.Tensor:
+    """(N,) long: the pan prior's move where the views do not overlap (pitch move while ``|dp| > fov``)."""
+    pitch_move = torch.where(dp > 0, int(Action.UP), int(Action.DOWN))
+    return torch.where(dp.abs() > fov, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
+
+
+def pan_actions(
+    pitch: torch.Tensor,
+    yaw: torch.Tensor,
+    target_pitch: torch.Tensor,
+    target_yaw: torch.Tensor,
+    fov: float,
+    step_deg: int = 1,
+    order: str = "pitch_first",
+) -> torch.Tensor:
+    """Oracle actions where the views overlap; elsewhere pan ``RIGHT`` (N,) long (a pitch move towards the
+    target only while ``|dpitch| > fov``). See the module docstring ("pan search prior"); ``fov`` in degrees."""
+    oracle = oracle_actions(pitch, yaw, target_pitch, target_yaw, step_deg, order)
+    dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
+    return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, _pan_search(dp, fov))
+
+
+def pan_action_mask(
+    pitch: torch.Tensor,
+    yaw: torch.Tensor,
+    target_pitch: torch.Tensor,
+    target_yaw: torch.Tensor,
+    fov: float,
+    step_deg: int = 1,
+) -> torch.Tensor:
+    """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the pan prior's one move."""
+    optimal = optimal_action_mask(pitch, yaw, target_pitch, target_yaw, step_deg)
+    dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
+    search = torch.nn.functional.one_hot(_pan_search(dp, fov), len(Action)).bool()
+    overlap = overlap_mask(pitch, yaw, target_pitch, target_yaw, fov)
+    return torch.where(overlap[:, None], optimal, search)
+
+
 def oracle_actions_for(env: Any, order: str = "pitch_first", search: str = "oracle") -> torch.Tensor:
     """Labels for the environments' current observations, (N,) long on ``env.device``.
 
     Reads ``env.pitch, env.yaw, env.target_pitch, env.target_yaw`` (and ``env.step_deg``, ``env.sim.fov``).
-    ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`. Call it before
+    ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`; ``search="pan"``:
+    :func:`pan_actions`. Call it before
     ``env.step`` to label the observation the policy acts on.
     """
     if search not in SEARCH_PRIORS:
@@ -193,17 +242,22 @@ def oracle_actions_for(env: Any, order: str = "pitch_first", search: str = "orac
     step = int(getattr(env, "step_deg", 1))
     if search == "sweep":
         return sweep_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step, order)
+    if search == "pan":
+        return pan_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step, order)
     return oracle_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, step, order)
 
 
 def optimal_action_mask_for(env: Any, search: str = "oracle") -> torch.Tensor:
     """(N, 5) bool action sets of the environments' current observations (``search`` as in
-    :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`)."""
+    :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`,
+    ``pan`` -> :func:`pan_action_mask`)."""
     if search not in SEARCH_PRIORS:
         raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
     step = int(getattr(env, "step_deg", 1))
     if search == "sweep":
         return sweep_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step)
+    if search == "pan":
+        return pan_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step)
     return optimal_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, step)
 
 

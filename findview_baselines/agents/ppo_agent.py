@@ -99,7 +99,10 @@ class PPOAgent(Agent):
                 f"{height}x{width} (sim.height={height}, sim.width={width}); evaluate it with "
                 f"sim.height={h} sim.width={w} (and the FoV it was trained with)"
             )
-        policy = Policy(height=h, width=w, variant=str(sig["variant"]), hidden_size=int(sig["hidden_size"]))
+        policy = Policy(
+            height=h, width=w, variant=str(sig["variant"]), hidden_size=int(sig["hidden_size"]),
+            fine_shifts=int(sig.get("fine_shifts", 0)), fine_scales=int(sig.get("fine_scales", 1)),
+        )
         check_signature(sig, policy.model_signature())
         try:
             policy.load_state_dict(state["policy"])

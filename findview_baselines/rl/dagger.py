@@ -23,9 +23,11 @@ accepts any action on a shortest path (both axes while both are off), so the lea
 axis it sees best first instead of having to tell which remaining distance the order picks.
 
 Search prior (``search_prior``): ``"oracle"`` labels every state with the true shortest path, also where the view
-and the target share nothing, so a learner must guess the direction there; ``"sweep"`` (default) replaces
-the labels of no-overlap states by a covering sweep (match the pitch, then pan right; see
-``findview.task.oracle.sweep_actions``), which a learner can follow from images alone.
+and the target share nothing, so a learner must guess the direction there; ``"pan"`` (default) replaces
+the labels of no-overlap states by "pan right until the views overlap" (``findview.task.oracle.pan_actions``),
+which a learner can follow from images alone (it only has to tell whether the views overlap);
+``"sweep"`` first matches the pitch, then pans right (``sweep_actions``); a learner cannot read the
+target's pitch from a view that shares nothing with it and a greedy one ends in ``UP``/``DOWN`` two-cycles.
 
 Recurrent training: a chunk starts from the GRU state the learner had at that step during the rollout
 (stale once the weights move on, as in recurrent PPO), and ``masks == 0`` zero the state where an episode
@@ -52,7 +54,15 @@ from typing import Any, Callable, Mapping
 import torch
 from torch import nn
 
-from findview.task.oracle import ORDERS, SEARCH_PRIORS, optimal_action_mask_for, oracle_actions_for, rotation_labels
+from findview.task.oracle import (
+    ORDERS,
+    SEARCH_PRIORS,
+    optimal_action_mask_for,
+    oracle_actions_for,
+    overlap_mask,
+    rotation_labels,
+)
+from findview_baselines.rl import distributed
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
 from findview_baselines.rl.policy import NUM_ACTIONS, AuxHead, Policy, aux_loss, check_signature
 from findview_baselines.rl.ppo_trainer import UpdateAbandoned, no_distribution_validation
@@ -104,9 +114,13 @@ class DAggerConfig:
     """Updates over which beta falls linearly from ``beta_start`` to ``beta_end`` (0: ``beta_end`` at once)."""
     stop_weight: float = 1.0
     """Cross-entropy class weight of ``stop`` (the four moves weigh 1): above 1 penalises missed stops more."""
-    search_prior: str = "sweep"
-    """Labels where view and target do not overlap: ``sweep`` (match pitch, then pan right) or ``oracle``
-    (the true shortest path, which a learner cannot see)."""
+    search_weight: float = 1.0
+    """Loss weight of the steps where view and target do not overlap (the search prior's labels; 1 = as
+    any step). Hard episodes are long, so at the last curriculum level most labelled steps are "pan right":
+    below 1 keeps them from drowning the few steps that find and stop on the target."""
+    search_prior: str = "pan"
+    """Labels where view and target do not overlap: ``pan`` (pan right until they do), ``sweep`` (match
+    pitch, then pan right) or ``oracle`` (the true shortest path, which a learner cannot see)."""
     order: str = "pitch_first"
     """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
     ``pitch_first``, ``yaw_first`` or ``larger_first``."""
@@ -138,6 +152,8 @@ class DAggerConfig:
                 raise ValueError(f"dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
         if self.beta_decay_updates < 0:
             raise ValueError(f"dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
+        if self.search_weight <= 0:
+            raise ValueError(f"dagger.search_weight must be positive, got {self.search_weight!r}")
         if self.stop_weight <= 0 or self.aux_coef < 0 or self.max_grad_norm <= 0:
             raise ValueError(
                 f"dagger: need stop_weight > 0, aux_coef >= 0, max_grad_norm > 0; got {self.stop_weight}, "
@@ -157,7 +173,12 @@ class DAggerConfig:
         return cls(**{k: cfg[k] for k in known if k in cfg})
 
 
-def set_nll(logits: torch.Tensor, accepted: torch.Tensor, class_weights: torch.Tensor | None = None) -> torch.Tensor:
+def set_nll(
+    logits: torch.Tensor,
+    accepted: torch.Tensor,
+    class_weights: torch.Tensor | None = None,
+    row_weights: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Mean negative log-likelihood of the accepted actions: ``-log sum_{a in set} softmax(logits)_a``.
 
     Args:
@@ -166,12 +187,16 @@ def set_nll(logits: torch.Tensor, accepted: torch.Tensor, class_weights: torch.T
         class_weights: optional (5,) weights; a row weighs the largest weight among its accepted actions
             (so ``stop_weight`` applies to rows whose answer is ``stop``); the mean is weighted, as in
             ``torch.nn.functional.cross_entropy``.
+        row_weights: optional (B,) weights multiplying each row's weight (e.g. ``search_weight`` on the
+            no-overlap rows).
     """
     log_probs = torch.log_softmax(logits, dim=-1)
     nll = -torch.logsumexp(log_probs.masked_fill(~accepted, float("-inf")), dim=-1)
-    if class_weights is None:
+    if class_weights is None and row_weights is None:
         return nll.mean()
-    w = (accepted.float() * class_weights).amax(dim=-1)
+    w = (accepted.float() * class_weights).amax(dim=-1) if class_weights is not None else torch.ones_like(nll)
+    if row_weights is not None:
+        w = w * row_weights
     return (w * nll).sum() / w.sum()
 
 
@@ -214,6 +239,7 @@ class SequenceBuffer:
         self.hidden0 = torch.empty(c, hidden_size, **kw)
         self.masks = torch.empty(c, L, **kw)
         self.labels = torch.empty(c, L, NUM_ACTIONS, dtype=torch.bool, **kw)
+        self.weights = torch.ones(c, L, **kw)
         self.aux = torch.empty(c, L, AUX_SIZE, **kw) if with_aux else None
         self.pos = 0  # next slot to write
         self.size = 0  # filled slots
@@ -229,15 +255,18 @@ class SequenceBuffer:
         masks: torch.Tensor,
         labels: torch.Tensor,
         aux: torch.Tensor | None = None,
+        weights: torch.Tensor | None = None,
     ) -> None:
         """Append ``n`` chunks given time-major: view / target (L, n, 3, H, W), hidden0 (n, hidden), masks
-        (L, n), labels (L, n, 5) bool, aux (L, n, 3). The oldest chunks are overwritten when full."""
+        (L, n), labels (L, n, 5) bool, aux (L, n, 3), weights (L, n) loss weights (default 1). The oldest
+        chunks are overwritten when full."""
         n = hidden0.shape[0]
         if n > self.capacity:  # keep the newest
             keep = slice(n - self.capacity, n)
             view, target, masks, labels = view[:, keep], target[:, keep], masks[:, keep], labels[:, keep]
             hidden0 = hidden0[keep]
             aux = None if aux is None else aux[:, keep]
+            weights = None if weights is None else weights[:, keep]
             n = self.capacity
         slots = (torch.arange(n) + self.pos) % self.capacity
         slots = slots.to(self.device)
@@ -246,6 +275,7 @@ class SequenceBuffer:
         self.hidden0[slots] = hidden0.to(self.device)
         self.masks[slots] = masks.transpose(0, 1).to(self.device, torch.float32)
         self.labels[slots] = labels.transpose(0, 1).to(self.device, torch.bool)
+        self.weights[slots] = 1.0 if weights is None else weights.transpose(0, 1).to(self.device, torch.float32)
         if self.aux is not None:
             if aux is None:
                 raise ValueError("this buffer stores aux targets; add() needs aux")
@@ -261,7 +291,7 @@ class SequenceBuffer:
 
     def batch(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """The chunks ``index`` (b,), time-major flattened like a rollout: obs (L*b, 3, H, W), masks (L*b,),
-        labels (L*b, 5), aux (L*b, 3) or absent, hidden0 (b, hidden)."""
+        labels (L*b, 5), weights (L*b,), aux (L*b, 3) or absent, hidden0 (b, hidden)."""
 
         def tm(x: torch.Tensor) -> torch.Tensor:
             return x[index].transpose(0, 1).flatten(0, 1)
@@ -271,6 +301,7 @@ class SequenceBuffer:
             "target": tm(self.target),
             "masks": tm(self.masks),
             "labels": tm(self.labels),
+            "weights": tm(self.weights),
             "hidden0": self.hidden0[index],
         }
         if self.aux is not None:
@@ -288,6 +319,7 @@ class SequenceBuffer:
             "hidden0": self.hidden0[:n].cpu().clone(),
             "masks": self.masks[:n].cpu().clone(),
             "labels": self.labels[:n].cpu().clone(),
+            "weights": self.weights[:n].cpu().clone(),
         }
         if self.aux is not None:
             state["aux"] = self.aux[:n].cpu().clone()
@@ -306,6 +338,7 @@ class SequenceBuffer:
             )
         for name in ("view", "target", "hidden0", "masks", "labels"):
             getattr(self, name)[:n] = state[name].to(self.device)
+        self.weights[:n] = state["weights"].to(self.device) if state.get("weights") is not None else 1.0
         if self.aux is not None:
             if state.get("aux") is None:
                 raise ValueError("saved DAgger buffer has no aux targets but dagger.aux_coef > 0")
@@ -425,6 +458,7 @@ class DAggerTrainer:
         hiddens = torch.empty(T // cfg.seq_len, *self.hidden.shape, device=dev)
         masks = torch.empty(T, n, device=dev)
         labels = torch.empty(T, n, NUM_ACTIONS, dtype=torch.bool, device=dev)
+        weights = torch.ones(T, n, device=dev)
         aux = torch.empty(T, n, AUX_SIZE, device=dev) if self.aux_head is not None else None
         records: list[dict[str, Any]] = []
         agree = torch.zeros((), device=dev)
@@ -446,6 +480,9 @@ class DAggerTrainer:
             else:
                 label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
             labels[t].copy_(label)
+            if cfg.search_weight != 1.0:
+                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov))
+                weights[t].masked_fill_(~overlap.to(dev), cfg.search_weight)
             if aux is not None:
                 aux[t].copy_(rotation_labels(env).to(dev))
             t0 = time.perf_counter()
@@ -453,7 +490,6 @@ class DAggerTrainer:
             learner, _, _, new_hidden = self.policy.act(
                 obs, self.hidden, self.masks, deterministic=not cfg.sample_actions
             )
-            _sync(dev)
             t1 = time.perf_counter()
             use_oracle = torch.rand(n, generator=self.mix_generator) < beta
             executed_oracle += int(use_oracle.sum())
@@ -469,15 +505,17 @@ class DAggerTrainer:
             self.episode_returns += rewards.to(dev, torch.float32)
             finished = [i for i, info in enumerate(infos) if info is not None]
             if finished:
-                returns = self.episode_returns.tolist()
-                records += [{**infos[i], "return": returns[i]} for i in finished]
-            self.episode_returns[done.to(dev)] = 0.0
+                returns = self.episode_returns[finished].tolist()
+                records += [{**infos[i], "return": r} for i, r in zip(finished, returns)]
+            self.episode_returns.masked_fill_(done.to(dev), 0.0)
 
         L = cfg.seq_len
         for k in range(T // L):
             s = slice(k * L, (k + 1) * L)
-            self.buffer.add(views[s], targets[s], hiddens[k], masks[s], labels[s], None if aux is None else aux[s])
-        self.env_steps += T * n
+            self.buffer.add(
+                views[s], targets[s], hiddens[k], masks[s], labels[s], None if aux is None else aux[s], weights[s]
+            )
+        self.env_steps += distributed.global_steps(T * n)  # all ranks under torchrun
         total = time.perf_counter() - start
         self.timings["policy_forward"] += t_forward
         self.timings["env_step"] += t_env
@@ -497,7 +535,7 @@ class DAggerTrainer:
             dist, _, _, features = self.policy.forward_features(obs, b["hidden0"], b["masks"])
             logits = dist.logits
             labels = b["labels"]
-            ce = set_nll(logits, labels, self.class_weights)
+            ce = set_nll(logits, labels, self.class_weights, b["weights"])
             loss = ce
             terms = {"policy_loss": ce}
             if self.aux_head is not None:
@@ -507,10 +545,11 @@ class DAggerTrainer:
                     aux_loss=aux_terms["loss"], aux_rotation_loss=aux_terms["rotation_loss"],
                     aux_overlap_accuracy=aux_terms["overlap_accuracy"],
                 )
-            if not bool(torch.isfinite(loss)):
+            if not bool(torch.isfinite(loss)) and not distributed.is_active():  # distributed: caught below
                 raise FloatingPointError(f"non-finite DAgger loss: {loss.item()}")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            distributed.allreduce_gradients(self.params)  # under torchrun: average over ranks, before clipping
             grad_norm = nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
             if not torch.isfinite(grad_norm):
                 raise FloatingPointError(f"non-finite gradient norm: {grad_norm.item()}")

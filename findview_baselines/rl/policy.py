@@ -21,6 +21,18 @@ Variants (``variant`` in ``configs/agent/ppo.yaml``):
   size, so any overlap a 90-degree view can show), a conv head on that volume, plus the pooled absolute
   pixel difference of view and target (exactly 0 on the target: the stop cue) and the pooled features of
   both images (scene context for searching) -> F = hidden_size. See :class:`CorrelationEncoder`.
+  ``fine_shifts = k > 0`` adds a local photometric cost map at full input resolution: the mean absolute
+  grey-level difference of view and target for every pixel shift ``(dy, dx)`` in ``[-k, k]^2`` (see
+  :meth:`CorrelationEncoder.fine_costs`), which resolves the last degrees (at 64x64 and FoV 90 one degree
+  is about 0.6 pixel) and whose zero-shift entry is exactly 0 on the target (a clean target);
+  ``fine_scales = S`` computes that map on ``S`` levels of an image pyramid (2x average pooling per level),
+  so level ``s`` covers shifts of up to ``k * 2^s`` pixels: a fixed coarse-to-fine direct alignment the
+  head only has to read.
+- ``direct``: no learned image encoder at all. Fixed photometric comparisons of view and target (a global
+  cost volume over every shift of ``DIRECT_COARSE x DIRECT_COARSE`` grey thumbnails, the fine cost pyramid
+  of ``fine_shifts`` / ``fine_scales``, and a colour thumbnail of both images for the search) feed a small
+  conv head and MLP -> F = hidden_size. Cheap to train on a CPU (no gradient through image convolutions);
+  see :class:`DirectEncoder`.
 
 Auxiliary rotation loss (any variant, training only): :class:`AuxHead` regresses ``(dpitch, dyaw) / fov``
 and classifies overlap from the features before the GRU (``Policy.forward_features``); see
@@ -34,14 +46,15 @@ Recurrent-state convention (shared with ``storage.py``): ``masks[t] == 0`` means
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 from torch import nn
 from torch.distributions import Categorical
 
 NUM_ACTIONS = 5  # up, down, left, right, stop (findview.task.Action)
-VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation")
+VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct")
+PRECISIONS = ("fp32", "bf16")  # agent.precision: the encoder's compute dtype (see Policy.configure_speed)
 
 Obs = Mapping[str, torch.Tensor]
 
@@ -116,12 +129,32 @@ class CorrelationEncoder(nn.Module):
     ``g = CORR_GRID`` (8) cells per side (fewer for images under 64 pixels); with a 90-degree view a cell
     spans about 11 degrees, and the ``2g - 1`` shifts per axis cover every displacement at which the two
     views still share a cell.
+
+    With ``fine_shifts = k > 0`` the fuse layer also gets the fine cost maps (:meth:`fine_costs`, ``K =
+    (2k + 1)^2`` values per pyramid level, ``fine_scales`` levels) three ways: ``4 c``, ``log(c + 1e-3) / 7 + 1``
+    and its shape per level ``(c - min c) / (mean c - min c + 1e-3)`` (scale-free: where the minimum lies and
+    how sharp it is) -> ``3 K fine_scales`` more inputs.
     """
 
-    def __init__(self, height: int, width: int, out_size: int, channels: int = 32) -> None:
+    def __init__(
+        self, height: int, width: int, out_size: int, channels: int = 32, fine_shifts: int = 0, fine_scales: int = 1
+    ) -> None:
         super().__init__()
         if height < 16 or width < 16:
             raise ValueError(f"image {height}x{width} is too small for the correlation encoder (needs at least 16x16)")
+        if not 0 <= int(fine_shifts) <= min(height, width) // 4:
+            raise ValueError(
+                f"fine_shifts={fine_shifts} must be in [0, {min(height, width) // 4}] pixels for {height}x{width} images"
+            )
+        coarsest = min(height, width) >> (int(fine_scales) - 1) if fine_scales >= 1 else 0
+        if fine_shifts and not (fine_scales >= 1 and coarsest > 2 * int(fine_shifts)):
+            raise ValueError(
+                f"fine_scales={fine_scales} must be >= 1 and leave more than 2 * fine_shifts={fine_shifts} pixels at "
+                f"the coarsest level ({height}x{width} halved fine_scales - 1 times)"
+            )
+        self.fine_shifts = int(fine_shifts)
+        self.fine_scales = int(fine_scales) if self.fine_shifts else 1
+        fine_size = 3 * (2 * self.fine_shifts + 1) ** 2 * self.fine_scales if self.fine_shifts else 0
         self.cnn = nn.Sequential(
             nn.Conv2d(3, 16, 5, stride=2, padding=2), nn.ReLU(),
             nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.ReLU(),
@@ -155,7 +188,7 @@ class CorrelationEncoder(nn.Module):
         # can kill every unit and freeze the policy on one action)
         self.head_fc = nn.Sequential(nn.Linear(32 * 16, out_size), nn.LayerNorm(out_size), nn.ReLU())
         self.fuse = nn.Sequential(
-            nn.Linear(out_size + SOFT_SHIFT_SIZE + 2 * DIFF_GRID * DIFF_GRID + 2 * channels, out_size),
+            nn.Linear(out_size + SOFT_SHIFT_SIZE + 2 * DIFF_GRID * DIFF_GRID + 2 * channels + fine_size, out_size),
             nn.LayerNorm(out_size),
             nn.ReLU(),
         )
@@ -195,6 +228,24 @@ class CorrelationEncoder(nn.Module):
         weights = torch.softmax(mean * SOFT_SHIFT_TEMPERATURE, dim=1)
         return torch.cat([weights @ self.shift_coords, mean.max(dim=1, keepdim=True).values], dim=1)
 
+    def fine_costs(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Local photometric cost maps: (B, 3, H, W) x 2 float in [0, 1] -> (B, S * (2k+1)^2), ``k =
+        fine_shifts``, ``S = fine_scales``.
+
+        Level ``s`` (0 = full resolution) averages both grey images (channel mean, units of the [0, 1]
+        intensity) over ``2^s x 2^s`` blocks; its entry ``s * (2k+1)^2 + (dy + k) * (2k + 1) + (dx + k)`` is
+        the mean over the central ``(h - 2k) x (w - 2k)`` pixels of that level of ``|view[y + dy, x + dx] -
+        target[y, x]|`` for integer shifts ``dy, dx`` in ``[-k, k]`` (level pixels, ``2^s`` input pixels
+        each). The zero shift (the centre entry) is 0 when the view equals the target; near alignment a
+        level's map is a bowl whose lowest side points to the remaining offset.
+        """
+        return pyramid_costs(view.mean(dim=1, keepdim=True), target.mean(dim=1, keepdim=True), self.fine_shifts,
+                             self.fine_scales)
+
+    def fine_features(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The three scalings of :meth:`fine_costs` fed to the fuse layer, (B, 3 S (2k+1)^2)."""
+        return cost_features(self.fine_costs(view, target), self.fine_scales)
+
     def forward(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """``view``, ``target`` (B, 3, H, W) float in [0, 1] -> (B, out_size)."""
         b = view.shape[0]
@@ -205,7 +256,153 @@ class CorrelationEncoder(nn.Module):
         diff = nn.functional.adaptive_avg_pool2d((view - target).abs().mean(dim=1, keepdim=True), DIFF_GRID).flatten(1)
         diff_feats = torch.cat([diff * 4.0, torch.log(diff + 1e-3) / 7.0 + 1.0], dim=1)
         context = torch.cat([view_maps.mean(dim=(2, 3)), target_maps.mean(dim=(2, 3))], dim=1)
-        return self.fuse(torch.cat([corr, self.soft_shift(volume), diff_feats, context], dim=1))
+        parts = [corr, self.soft_shift(volume), diff_feats, context]
+        if self.fine_shifts:
+            parts.append(self.fine_features(view, target))
+        return self.fuse(torch.cat(parts, dim=1))
+
+
+def pyramid_costs(grey_view: torch.Tensor, grey_target: torch.Tensor, shifts: int, levels: int) -> torch.Tensor:
+    """Local photometric cost maps on an image pyramid: (B, 1, H, W) x 2 -> (B, levels * (2k+1)^2), k = shifts.
+
+    Level ``s`` (0 = full resolution) averages both images over ``2^s x 2^s`` blocks; its entry ``s (2k+1)^2 +
+    (dy + k)(2k + 1) + (dx + k)`` is the mean over the central ``(h - 2k) x (w - 2k)`` pixels of that level of
+    ``|view[y + dy, x + dx] - target[y, x]|`` for integer shifts ``dy, dx`` in ``[-k, k]`` (level pixels).
+    """
+    k = shifts
+    costs = []
+    for level in range(levels):
+        if level:
+            grey_view = nn.functional.avg_pool2d(grey_view, 2, ceil_mode=True)
+            grey_target = nn.functional.avg_pool2d(grey_target, 2, ceil_mode=True)
+        h, w = grey_target.shape[-2:]
+        core = grey_target[:, 0, k:h - k, k:w - k]
+        costs += [
+            (grey_view[:, 0, k + dy:h - k + dy, k + dx:w - k + dx] - core).abs().mean(dim=(1, 2))
+            for dy in range(-k, k + 1)
+            for dx in range(-k, k + 1)
+        ]
+    return torch.stack(costs, dim=1)
+
+
+def cost_features(costs: torch.Tensor, groups: int) -> torch.Tensor:
+    """(B, groups * K) costs -> (B, 3 groups K): ``4 c``, ``log(c + 1e-5) / 11.5 + 1`` (0 for an exact match,
+    about 0.5 for the 1/255-level differences of a one-degree offset) and, per group of K, the scale-free
+    shape ``(c - min c) / (mean c - min c + 1e-3)``."""
+    b = costs.shape[0]
+    per = costs.view(b, groups, -1)
+    low = per.amin(dim=2, keepdim=True)
+    shape = ((per - low) / (per.mean(dim=2, keepdim=True) - low + 1e-3)).flatten(1)
+    return torch.cat([costs * 4.0, torch.log(costs + 1e-5) / 11.5 + 1.0, shape], dim=1)
+
+
+# the direct variant: coarse thumbnail size (cells per side), its shifts per axis (-s..s cells), the colour
+# context thumbnail (cells per side) and the softmax sharpness of its soft argmin
+DIRECT_COARSE = 8
+DIRECT_COARSE_SHIFTS = 6
+DIRECT_CONTEXT = 4
+DIRECT_SOFTMIN_TEMPERATURE = 5.0
+
+
+class DirectEncoder(nn.Module):
+    """Fixed photometric comparisons of view and target + a small learned head (the ``direct`` variant).
+
+    Data flow for ``B`` pairs (view, target), each (B, 3, H, W) float in [0, 1]::
+
+        grey = channel mean; thumbnails: grey averaged to c x c cells (c = DIRECT_COARSE = 8)
+        global cost volume: mean |thumb_view[y + dy, x + dx] - thumb_target[y, x]| over the overlapping
+            cells, every shift |dy|, |dx| <= s (s = DIRECT_COARSE_SHIFTS = 6 cells, about 8 px each)
+            -> (B, 3, 2s+1, 2s+1): 4 cost, scale-free shape, overlap fraction (constant)
+            -> conv head (2 convs) + Linear + LayerNorm + ReLU              -> (B, hidden)
+        soft argmin of the shape (expected (dy, dx) / s) and the lowest cost -> (B, 3)
+        fine cost pyramid (``fine_shifts`` k > 0, ``fine_scales`` levels; see :func:`pyramid_costs`),
+            three scalings (:func:`cost_features`)                          -> (B, 3 * levels * (2k+1)^2)
+        colour thumbnails of view and target (DIRECT_CONTEXT^2 cells, RGB, scaled to [-1, 1]) -> (B, 96)
+        exact-match cue: ``d = mean |grey view - grey target|`` at full resolution, ``exp(-1000 d)`` and ``4 d``
+            (1 and 0 only when the view is the target: a clean target is rendered bit for bit) -> (B, 2)
+        concat -> (Linear -> LayerNorm -> ReLU) x 2                         -> (B, hidden)
+
+    Nothing before the head is learned, so training touches only about 0.3M parameters and no image
+    convolution: a CPU trains it an order of magnitude faster than the ``correlation`` variant. The global
+    volume tells the direction to any target that shares content with the view (shifts up to about
+    ``6 * 11 = 66`` degrees at FoV 90); the fine pyramid resolves the last pixels (the zero-shift cost is
+    exactly 0 on a clean target: the stop cue). A corrupted target is never matched exactly, so an agent
+    meant for corrupted targets must be trained with them (``corruption.*``) to learn a softer stop rule.
+    """
+
+    def __init__(self, height: int, width: int, out_size: int, fine_shifts: int = 2, fine_scales: int = 4) -> None:
+        super().__init__()
+        if height < 16 or width < 16:
+            raise ValueError(f"image {height}x{width} is too small for the direct encoder (needs at least 16x16)")
+        coarsest = min(height, width) >> (int(fine_scales) - 1) if fine_scales >= 1 else 0
+        if fine_shifts < 0 or (fine_shifts and not (fine_scales >= 1 and coarsest > 2 * int(fine_shifts))):
+            raise ValueError(
+                f"fine_shifts={fine_shifts} / fine_scales={fine_scales}: need fine_shifts >= 0 and fine_scales >= 1 "
+                f"leaving more than 2 * fine_shifts pixels at the coarsest level of {height}x{width} images"
+            )
+        self.fine_shifts = int(fine_shifts)
+        self.fine_scales = int(fine_scales) if self.fine_shifts else 1
+        c, s = DIRECT_COARSE, DIRECT_COARSE_SHIFTS
+        n = 2 * s + 1
+        self.volume_size = n
+        # overlap count of every shift on the c x c thumbnail and the displacement of every bin in [-1, 1]
+        dy, dx = torch.meshgrid(torch.arange(n) - s, torch.arange(n) - s, indexing="ij")
+        overlap = ((c - dy.abs()) * (c - dx.abs())).float().flatten()
+        self.register_buffer("overlap_count", overlap, persistent=False)
+        self.register_buffer("overlap_frac", (overlap / (c * c)).view(1, 1, n, n), persistent=False)
+        self.register_buffer("shift_coords", torch.stack([dy.flatten(), dx.flatten()], dim=1).float() / s,
+                             persistent=False)
+        self.head = nn.Sequential(
+            nn.Conv2d(3, 16, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.ReLU(),
+        )
+        head_out = 32 * ((n + 1) // 2) ** 2
+        self.head_fc = nn.Sequential(nn.Linear(head_out, out_size), nn.LayerNorm(out_size), nn.ReLU())
+        fine_size = 3 * self.fine_scales * (2 * self.fine_shifts + 1) ** 2 if self.fine_shifts else 0
+        context_size = 2 * 3 * DIRECT_CONTEXT * DIRECT_CONTEXT
+        self.fuse = nn.Sequential(
+            nn.Linear(out_size + 3 + fine_size + context_size + 2, out_size), nn.LayerNorm(out_size), nn.ReLU(),
+            nn.Linear(out_size, out_size), nn.LayerNorm(out_size), nn.ReLU(),
+        )
+
+    def global_costs(self, thumb_view: torch.Tensor, thumb_target: torch.Tensor) -> torch.Tensor:
+        """(B, 1, c, c) x 2 -> (B, (2s+1)^2): mean ``|view[y + dy, x + dx] - target[y, x]|`` over the cells
+        where both exist, for every shift ``dy, dx`` in ``[-s, s]`` (entry ``(dy + s)(2s + 1) + (dx + s)``)."""
+        s = DIRECT_COARSE_SHIFTS
+        c = thumb_view.shape[-1]
+        padded = nn.functional.pad(thumb_view, (s, s, s, s))
+        valid = nn.functional.pad(torch.ones_like(thumb_view[:1]), (s, s, s, s))
+        windows = nn.functional.unfold(padded, (c, c))  # (B, c*c, n*n): window (i, j) = shift (i - s, j - s)
+        mask = nn.functional.unfold(valid, (c, c))  # (1, c*c, n*n)
+        diff = (windows - thumb_target.flatten(1)[:, :, None]).abs() * mask
+        return diff.sum(dim=1) / self.overlap_count
+
+    def forward(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``view``, ``target`` (B, 3, H, W) float in [0, 1] -> (B, out_size)."""
+        b, n = view.shape[0], self.volume_size
+        grey_v = view.mean(dim=1, keepdim=True)
+        grey_t = target.mean(dim=1, keepdim=True)
+        thumb_v = nn.functional.adaptive_avg_pool2d(grey_v, DIRECT_COARSE)
+        thumb_t = nn.functional.adaptive_avg_pool2d(grey_t, DIRECT_COARSE)
+        costs = self.global_costs(thumb_v, thumb_t)  # (B, n*n)
+        low = costs.amin(dim=1, keepdim=True)
+        shape = (costs - low) / (costs.mean(dim=1, keepdim=True) - low + 1e-3)
+        volume = torch.stack([costs * 4.0, shape], dim=1).view(b, 2, n, n)
+        volume = torch.cat([volume, self.overlap_frac.expand(b, -1, -1, -1)], dim=1)
+        coarse = self.head_fc(self.head(volume).flatten(1))
+        weights = torch.softmax(-shape * DIRECT_SOFTMIN_TEMPERATURE, dim=1)
+        parts = [coarse, weights @ self.shift_coords, low * 4.0]
+        if self.fine_shifts:
+            fine = pyramid_costs(grey_v, grey_t, self.fine_shifts, self.fine_scales)
+            parts.append(cost_features(fine, self.fine_scales))
+        context = torch.cat([
+            nn.functional.adaptive_avg_pool2d(view, DIRECT_CONTEXT).flatten(1),
+            nn.functional.adaptive_avg_pool2d(target, DIRECT_CONTEXT).flatten(1),
+        ], dim=1)
+        parts.append(context * 2.0 - 1.0)
+        residual = (grey_v - grey_t).abs().mean(dim=(1, 2, 3))[:, None]
+        parts += [torch.exp(-1000.0 * residual), residual * 4.0]
+        return self.fuse(torch.cat(parts, dim=1))
 
 
 class AuxHead(nn.Module):
@@ -256,6 +453,8 @@ def _to_float(image: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------------------------------
 
 SIGNATURE_FIELDS = ("variant", "hidden_size", "height", "width")
+# signature fields added later, with the value a checkpoint that lacks them was trained with
+OPTIONAL_SIGNATURE_FIELDS = {"fine_shifts": 0, "fine_scales": 1}
 
 
 def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
@@ -272,6 +471,12 @@ def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any]) -> Non
                 f"checkpoint does not fit this model: {key} is {saved[key]!r} in the checkpoint "
                 f"but {current.get(key)!r} in the current config"
             )
+    for key, default in OPTIONAL_SIGNATURE_FIELDS.items():
+        if saved.get(key, default) != current.get(key, default):
+            raise ValueError(
+                f"checkpoint does not fit this model: {key} is {saved.get(key, default)!r} in the checkpoint "
+                f"but {current.get(key, default)!r} in the current config"
+            )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -286,14 +491,33 @@ class Policy(nn.Module):
         height, width: size of the view and target images (both the same).
         variant: one of :data:`VARIANTS`.
         hidden_size: size of the encoder features and of the GRU state (512 in the paper).
+        fine_shifts: ``correlation`` / ``direct`` only: half-width ``k`` in pixels of the fine cost map (shifts ``-k..k``
+            per axis, see :meth:`CorrelationEncoder.fine_costs`); 0 = off. Part of the checkpoint signature.
+        fine_scales: pyramid levels of the fine cost map (1 = full resolution only); with fine_shifts > 0.
 
     ``feature_size`` is the width ``F`` of the features entering the GRU (see :meth:`encode`).
+
+    Speed options (:meth:`configure_speed`; ``agent.precision``, ``agent.channels_last``,
+    ``agent.compile``) change how the encoder runs, never the parameters: checkpoints are the same with
+    and without them.
     """
 
-    def __init__(self, height: int, width: int, variant: str = "early_fusion", hidden_size: int = 512) -> None:
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        variant: str = "early_fusion",
+        hidden_size: int = 512,
+        fine_shifts: int = 0,
+        fine_scales: int = 1,
+    ) -> None:
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"unknown policy variant {variant!r}; choose one of {VARIANTS}")
+        if fine_shifts and variant not in ("correlation", "direct"):
+            raise ValueError(f"fine_shifts={fine_shifts} needs variant 'correlation' or 'direct', got {variant!r}")
+        self.fine_shifts = int(fine_shifts)
+        self.fine_scales = int(fine_scales) if self.fine_shifts else 1
         self.variant = variant
         self.hidden_size = hidden_size
         self.height = height
@@ -310,8 +534,13 @@ class Policy(nn.Module):
             self.encoder = ConvEncoder(3, height, width, hidden_size)
             self.fuse = nn.Sequential(nn.Linear(2 * hidden_size, hidden_size), nn.ReLU())
             feature_size = hidden_size
+        elif variant == "direct":
+            self.encoder = DirectEncoder(height, width, hidden_size, self.fine_shifts, self.fine_scales)
+            feature_size = hidden_size
         else:  # correlation
-            self.encoder = CorrelationEncoder(height, width, hidden_size)
+            self.encoder = CorrelationEncoder(
+                height, width, hidden_size, fine_shifts=self.fine_shifts, fine_scales=self.fine_scales
+            )
             feature_size = hidden_size
         self.feature_size = feature_size
 
@@ -319,6 +548,43 @@ class Policy(nn.Module):
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
         self.critic = nn.Linear(hidden_size, 1)
         self._init_weights()
+        # speed options (configure_speed); the compiled encoder is a plain attribute, not a submodule, so
+        # state_dict keys never get torch.compile's "_orig_mod." prefix
+        self.precision = "fp32"
+        self.channels_last = False
+        self._compiled_encode: Callable[[Obs], torch.Tensor] | None = None
+
+    def configure_speed(
+        self, precision: str = "fp32", channels_last: bool = False, compile: bool = False,
+        compile_backend: str = "inductor",
+    ) -> "Policy":
+        """Choose how the encoder runs (the GRU and the heads always run in float32).
+
+        Args:
+            precision: ``fp32`` | ``bf16``: ``bf16`` runs the encoder under ``torch.autocast`` (bfloat16)
+                on the device of the observations (CPU or CUDA); features, logits and values are float32.
+            channels_last: store the conv weights and feed the encoder its input in
+                ``torch.channels_last`` memory format (NHWC; faster convolutions on recent GPUs / CPUs).
+            compile: run the encoder through ``torch.compile`` (``compile_backend``); the first calls of
+                each batch shape compile (seconds to a minute).
+
+        Returns ``self``. Call it after construction; ``.to(device)`` afterwards keeps the memory format.
+        """
+        if precision not in PRECISIONS:
+            raise ValueError(f"agent.precision must be one of {' | '.join(PRECISIONS)}, got {precision!r}")
+        self.precision = precision
+        self.channels_last = bool(channels_last)
+        self.to(memory_format=torch.channels_last if self.channels_last else torch.contiguous_format)
+        self._compiled_encode = torch.compile(self.encode, backend=compile_backend) if compile else None
+        return self
+
+    def features(self, obs: Obs) -> torch.Tensor:
+        """:meth:`encode` under the speed options: (B, F) float32 features entering the GRU."""
+        encode = self._compiled_encode if self._compiled_encode is not None else self.encode
+        if self.precision == "bf16":
+            with torch.autocast(device_type=obs["view"].device.type, dtype=torch.bfloat16):
+                return encode(obs).float()
+        return encode(obs)
 
     def _init_weights(self) -> None:
         """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
@@ -338,7 +604,13 @@ class Policy(nn.Module):
 
     def model_signature(self) -> dict[str, Any]:
         """What a checkpoint must match to be loaded into this policy (see :func:`check_signature`)."""
-        return {"variant": self.variant, "hidden_size": self.hidden_size, "height": self.height, "width": self.width}
+        sig: dict[str, Any] = {
+            "variant": self.variant, "hidden_size": self.hidden_size, "height": self.height, "width": self.width
+        }
+        if self.fine_shifts:  # only when set, so older readers still load fine_shifts=0 checkpoints
+            sig["fine_shifts"] = self.fine_shifts
+            sig["fine_scales"] = self.fine_scales
+        return sig
 
     def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
         """Zero recurrent state, (num_envs, hidden_size)."""
@@ -354,16 +626,22 @@ class Policy(nn.Module):
         """
         view = _to_float(obs["view"])
         target = _to_float(obs["target"])
+        if self.channels_last:
+            view = view.contiguous(memory_format=torch.channels_last)
+            target = target.contiguous(memory_format=torch.channels_last)
         if view.shape[-2:] != (self.height, self.width):
             raise ValueError(
                 f"policy was built for {self.height}x{self.width} images, got {tuple(view.shape[-2:])}"
             )
         if self.variant == "early_fusion":
-            return self.encoder(torch.cat([view, target], dim=1))
+            fused = torch.cat([view, target], dim=1)
+            if self.channels_last:
+                fused = fused.contiguous(memory_format=torch.channels_last)
+            return self.encoder(fused)
         if self.variant == "goal_encoder":
             fused = self.encoder(torch.cat([view, target], dim=1))
             return torch.cat([fused, self.goal_encoder(target)], dim=1)
-        if self.variant == "correlation":
+        if self.variant in ("correlation", "direct"):
             return self.encoder(view, target)
         # siamese: one encoder, two passes batched together
         both = self.encoder(torch.cat([view, target], dim=0))
@@ -392,6 +670,9 @@ class Policy(nn.Module):
             raise ValueError(f"{features.shape[0]} feature rows are not a multiple of {num_envs} environments")
         x = features.view(steps, num_envs, -1)
         masks = masks.to(x.dtype).view(steps, num_envs)
+        if steps == 1:  # acting: one GRU call, no search for restarts (no host-device sync)
+            out, h = self.gru(x, (hidden * masks[0].view(num_envs, 1)).unsqueeze(0))
+            return out.view(num_envs, -1), h.squeeze(0)
 
         # step indices where some env restarts (step 0 is always a chunk start)
         restarts = (masks[1:] == 0).any(dim=1).nonzero().flatten().add(1).tolist()
@@ -419,7 +700,7 @@ class Policy(nn.Module):
 
         Same inputs as :meth:`run_gru` (time-major ``T*N`` rows, ``hidden`` (N, hidden), masks (T*N,)).
         """
-        features = self.encode(obs)
+        features = self.features(obs)
         out, new_hidden = self.run_gru(features, hidden, masks)
         dist = Categorical(logits=self.actor(out))
         values = self.critic(out).squeeze(-1)
@@ -449,7 +730,7 @@ class Policy(nn.Module):
 
     def get_value(self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
         """Critic value (N,) of one step (same inputs as :meth:`act`)."""
-        out, _ = self.run_gru(self.encode(obs), hidden, masks)
+        out, _ = self.run_gru(self.features(obs), hidden, masks)
         return self.critic(out).squeeze(-1)
 
     def evaluate_actions(
@@ -471,10 +752,18 @@ class Policy(nn.Module):
 
 
 def build_policy(agent_cfg: Mapping[str, Any], height: int, width: int) -> Policy:
-    """Policy from the ``agent`` config (``variant``, ``hidden_size``) and the view size of ``sim``."""
-    return Policy(
+    """Policy from the ``agent`` config (``variant``, ``hidden_size``; speed options ``precision``,
+    ``channels_last``, ``compile``, see :meth:`Policy.configure_speed`) and the view size of ``sim``."""
+    policy = Policy(
         height=int(height),
         width=int(width),
         variant=str(agent_cfg.get("variant", "early_fusion")),
         hidden_size=int(agent_cfg.get("hidden_size", 512)),
+        fine_shifts=int(agent_cfg.get("fine_shifts", 0) or 0),
+        fine_scales=int(agent_cfg.get("fine_scales", 1) or 1),
+    )
+    return policy.configure_speed(
+        precision=str(agent_cfg.get("precision", None) or "fp32"),
+        channels_last=bool(agent_cfg.get("channels_last", False)),
+        compile=bool(agent_cfg.get("compile", False)),
     )

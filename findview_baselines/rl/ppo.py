@@ -22,6 +22,7 @@ from typing import Any, Mapping
 import torch
 from torch import nn
 
+from findview_baselines.rl import distributed
 from findview_baselines.rl.policy import AuxHead, Policy, aux_loss
 from findview_baselines.rl.storage import RolloutStorage
 
@@ -65,7 +66,7 @@ class PPOConfig:
     clipped_value_loss: bool = True
     """Clip the value loss like the policy ratio."""
     normalize_advantage: bool = True
-    """Normalise advantages per mini-batch."""
+    """Normalise advantages (mean / std of the whole rollout, over all ranks under torchrun)."""
     aux_coef: float = 0.0
     """Weight of the auxiliary loss (relative rotation regression + overlap classification); 0 = off (the
     paper's recipe)."""
@@ -177,9 +178,12 @@ class PPO:
         if the loss or the gradient norm is not finite.
         """
         cfg = self.cfg
-        advantages = storage.returns - storage.values[:-1]
+        steps = storage.num_steps  # all rows, unless a preempted rollout is shorter (see ppo_trainer)
+        advantages = storage.returns[:steps] - storage.values[:steps]
         if cfg.normalize_advantage:
-            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+            # statistics of the whole batch: over every rank's environments under torchrun
+            mean, std = distributed.mean_std(advantages)
+            advantages = (advantages - mean) / (std + 1e-5)
 
         if self.aux_head is not None and not storage.has_aux_targets:
             raise ValueError(
@@ -217,24 +221,31 @@ class PPO:
                 if aux_terms is not None:
                     terms["loss"] = terms["loss"] + cfg.aux_coef * aux_terms["loss"]
                     terms["aux_loss"] = aux_terms["loss"]
-                _check_finite(terms)
-
                 self.optimizer.zero_grad(set_to_none=True)
                 terms["loss"].backward()
+                distributed.allreduce_gradients(self.params)  # average over ranks, before clipping
                 grad_norm = nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
-                if not torch.isfinite(grad_norm):
+                # one host sync per mini-batch, before the weights change. Distributed: a non-finite local
+                # loss shows as a non-finite averaged gradient norm on every rank, so all ranks fail together
+                checked = [grad_norm] if distributed.is_active() else [grad_norm, *(v.detach() for v in terms.values())]
+                if not bool(torch.isfinite(torch.stack([v.float().reshape(()) for v in checked])).all()):
+                    if not distributed.is_active():
+                        _check_finite(terms)
                     raise FloatingPointError(f"non-finite gradient norm: {grad_norm.item()}")
                 self.optimizer.step()
 
+                # statistics stay on the device until the update ends (no per-mini-batch sync)
                 for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"):
-                    totals[name] = totals.get(name, 0.0) + terms[name].item()
-                totals["grad_norm"] = totals.get("grad_norm", 0.0) + grad_norm.item()
+                    totals[name] = totals.get(name, 0.0) + terms[name].detach()
+                totals["grad_norm"] = totals.get("grad_norm", 0.0) + grad_norm.detach()
                 if aux_terms is not None:
                     for name in ("loss", "rotation_loss", "overlap_accuracy"):
-                        totals[f"aux_{name}"] = totals.get(f"aux_{name}", 0.0) + aux_terms[name].item()
+                        totals[f"aux_{name}"] = totals.get(f"aux_{name}", 0.0) + aux_terms[name].detach()
                 num_batches += 1
 
-        stats = {name: value / num_batches for name, value in totals.items()}
+        names = list(totals)
+        values = torch.stack([torch.as_tensor(totals[n]).float().reshape(()) for n in names]).tolist() if names else []
+        stats = {name: value / num_batches for name, value in zip(names, values)}
         stats["lr"] = self.lr
         stats["clip"] = self.clip
         return stats

@@ -14,6 +14,10 @@ algorithm has the same interface: ``start()``, ``train_update(should_stop) -> st
 A stop request (a signal) during the rollout abandons the update: :class:`UpdateAbandoned` is raised
 and :meth:`PPOTrainer.state_dict` then describes the state *before* that update (environment, rollout
 start, RNGs), so a resumed run repeats it exactly and no update is lost or done twice.
+
+Under torchrun (:mod:`findview_baselines.rl.distributed`) every rank runs this loop on its own
+environments; the PPO update averages the gradients and the advantage statistics over the ranks, and
+``env_steps`` counts the steps of all ranks.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import torch
 from torch.distributions import Distribution
 
 from findview.task.oracle import rotation_labels
+from findview_baselines.rl import distributed
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
 from findview_baselines.rl.policy import Policy, check_signature
 from findview_baselines.rl.ppo import PPO, PPOConfig
@@ -61,6 +66,27 @@ def no_distribution_validation() -> Iterator[None]:
         yield
     finally:
         Distribution.set_default_validate_args(previous)
+
+
+@contextlib.contextmanager
+def _first_steps(storage: RolloutStorage, steps: int) -> Iterator[None]:
+    """Let GAE and the PPO update see only the first ``steps`` steps of ``storage`` (a preempted rollout),
+    then put the state after them where :meth:`RolloutStorage.after_update` takes the next start from.
+    A full rollout (``steps == num_steps``) is left untouched."""
+    full = storage.num_steps
+    if steps == full:
+        yield
+        return
+    aux_valid = storage.aux_valid.clone()
+    storage.num_steps = steps
+    storage.aux_valid[steps:] = bool(aux_valid[:steps].all())  # unused rows: aux targets as the used ones
+    try:
+        yield
+    finally:
+        storage.num_steps = full
+        storage.aux_valid.copy_(aux_valid)
+        for name in ("view", "target", "hidden", "masks"):
+            getattr(storage, name)[full].copy_(getattr(storage, name)[steps])
 
 
 def _sync(device: torch.device) -> None:
@@ -120,6 +146,8 @@ class PPOTrainer:
         self.episode_returns = torch.zeros(env.num_envs, device=self.device)
         self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
         self._before_update: dict[str, Any] | None = None  # resume parts while a rollout runs
+        self.preemption: distributed.Preemption | None = None  # straggler preemption (set by the run loop)
+        self.collected = cfg.rollout_steps  # steps of the last rollout (fewer when preempted)
 
     # ---------------------------------------------------------------------------------------------
 
@@ -138,20 +166,26 @@ class PPOTrainer:
         """Run ``rollout_steps`` steps, filling the storage; returns the records of finished episodes
         (each with an extra ``"return"``: the undiscounted reward sum).
 
-        Raises :class:`UpdateAbandoned` when ``should_stop()`` turns true before a step."""
+        Raises :class:`UpdateAbandoned` when ``should_stop()`` turns true before a step. With
+        :attr:`preemption` the rollout may end early (:attr:`collected` steps) and ``env_steps`` is left to
+        :meth:`train_update`."""
         records: list[dict[str, Any]] = []
         self.policy.eval()
         t_forward = t_env = 0.0
         start = time.perf_counter()
-        for _ in range(self.cfg.rollout_steps):
+        preemption, T = self.preemption, self.cfg.rollout_steps
+        min_steps = preemption.min_steps(T) if preemption is not None else T
+        self.collected = 0
+        for step in range(T):
             if should_stop():
                 raise UpdateAbandoned(f"update {self.update + 1} abandoned during its rollout")
+            if preemption is not None and step >= min_steps and preemption.preempted(self.update):
+                break
             t0 = time.perf_counter()
             obs, hidden, masks = self.storage.current()
             actions, log_probs, values, new_hidden = self.policy.act(obs, hidden, masks)
             # labels of obs[t] from the privileged state, taken before the step (never shown to the policy)
             aux = rotation_labels(self.env).to(self.device) if self.cfg.aux_coef > 0 else None
-            _sync(self.device)
             t1 = time.perf_counter()
             next_obs, rewards, done, infos = self.env.step(actions)
             t2 = time.perf_counter()
@@ -165,10 +199,14 @@ class PPOTrainer:
             self.episode_returns += rewards
             finished = [i for i, info in enumerate(infos) if info is not None]
             if finished:
-                returns = self.episode_returns.tolist()
-                records += [{**infos[i], "return": returns[i]} for i in finished]
-            self.episode_returns[done.to(self.device)] = 0.0
-        self.env_steps += self.cfg.rollout_steps * self.env.num_envs
+                returns = self.episode_returns[finished].tolist()
+                records += [{**infos[i], "return": r} for i, r in zip(finished, returns)]
+            self.episode_returns.masked_fill_(done.to(self.device), 0.0)
+            self.collected = step + 1
+        if preemption is None:
+            self.env_steps += distributed.global_steps(self.cfg.rollout_steps * self.env.num_envs)  # all ranks
+        elif self.collected == T:
+            preemption.finished(self.update)
         total = time.perf_counter() - start
         self.timings["policy_forward"] += t_forward
         self.timings["env_step"] += t_env
@@ -191,15 +229,20 @@ class PPOTrainer:
         self.ppo.set_progress(self.update, self.total_updates)
 
         with no_distribution_validation():
-            records = self.collect_rollout(should_stop)
+            if self.preemption is None:
+                records = self.collect_rollout(should_stop)
+            else:
+                records = self._collect_preemptible(should_stop)
             self._before_update = None
             t0 = time.perf_counter()
             obs, hidden, masks = self.storage.current()
             with torch.no_grad():
                 next_value = self.policy.get_value(obs, hidden, masks)
-            self.storage.compute_returns(next_value, self.cfg.gamma, self.cfg.gae_lambda)
             try:
-                stats: dict[str, Any] = self.ppo.update(self.storage, self.shuffle_generator)
+                with _first_steps(self.storage, self.collected):
+                    self.storage.values[self.collected].copy_(next_value)  # the bootstrap value of GAE
+                    self.storage.compute_returns(next_value, self.cfg.gamma, self.cfg.gae_lambda)
+                    stats: dict[str, Any] = self.ppo.update(self.storage, self.shuffle_generator)
                 self._check_weights()
             finally:
                 self.storage.after_update()
@@ -212,6 +255,20 @@ class PPOTrainer:
         stats["level"] = self.scheduler.current_level if self.scheduler is not None else None
         stats["episodes"] = records
         return stats
+
+    def _collect_preemptible(self, should_stop: Callable[[], bool]) -> list[dict[str, Any]]:
+        """:meth:`collect_rollout` with straggler preemption; then every rank learns whether any rank
+        abandoned the rollout (then all raise :class:`UpdateAbandoned`) and how many steps all collected."""
+        abandoned, records = False, []
+        try:
+            records = self.collect_rollout(should_stop)
+        except UpdateAbandoned:
+            abandoned = True
+        any_abandoned, steps = distributed.all_sum([float(abandoned), float(self.collected * self.env.num_envs)])
+        if any_abandoned:
+            raise UpdateAbandoned(f"update {self.update + 1} abandoned during its rollout")
+        self.env_steps += int(steps)
+        return records
 
     def _check_weights(self) -> None:
         """Raise ``FloatingPointError`` if any weight became NaN / inf (e.g. a NaN learning rate)."""

@@ -16,6 +16,16 @@ one go and N/2 + resume + N/2 give the same weights (on CPU). SIGTERM / SIGINT s
 safe point (the update in flight is abandoned if its rollout is not complete, else finished), write
 ``latest.pth`` and raise :class:`~findview_baselines.cli.Interrupted` (exit 143 / 130).
 
+Under torchrun (``trainer.distributed=true``, docs/CLUSTER.md) every rank runs this loop on its own
+environments and its shard of the train images (rank ``r`` of ``K``: images ``r::K``, seeds ``seed + r``);
+the trainers average their gradients over the ranks, :func:`learn` reduces the stats of every update and
+makes all ranks agree on a stop (a signal on any rank stops them all at the same safe point). Rank 0
+alone holds the lock, validates and writes ``latest.pth`` (with every rank's resume state), ``best.pth``,
+TensorBoard and the config; the others wait for it at the next collective. A resume with the same
+number of ranks continues exactly; with another number, the weights, optimizer, update count,
+schedule and best validation continue, while the environments restart with fresh episodes from
+re-seeded RNGs (:func:`findview_baselines.rl.distributed.reseed`).
+
 Validation runs the evaluation harness (:func:`findview_baselines.evaluation.harness.run_episodes`)
 with the learned agent wrapper (:class:`~findview_baselines.agents.ppo_agent.PPOAgent`) around the
 live policy: the same code path as ``tools/eval.py checkpoint=...``.
@@ -25,6 +35,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import random
 import time
 from collections import deque
@@ -37,6 +48,7 @@ import torch
 
 from findview.build import build_sampled_env, build_static_env
 from findview_baselines.cli import Interrupted, UserError
+from findview_baselines.rl import distributed
 from findview_baselines.rl.checkpoint import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
@@ -47,7 +59,7 @@ from findview_baselines.rl.checkpoint import (
 )
 from findview_baselines.rl.policy import Policy, build_policy, check_signature
 from findview_baselines.rl.ppo_trainer import UpdateAbandoned, no_distribution_validation
-from findview_baselines.rl.safety import RunLock, RunFolderBusy, StopOnSignal
+from findview_baselines.rl.safety import RunFolderBusy, RunLock, StopOnSignal
 from findview_baselines.rl.scheduler import DifficultyScheduler
 
 log = logging.getLogger(__name__)
@@ -62,6 +74,11 @@ __all__ = [
     "select_val_episodes",
     "seed_everything",
 ]
+
+#: trainer-state entries that are the same on every rank (saved once, by rank 0)
+REPLICATED_KEYS = ("signature", "policy", "ppo", "optimizer", "aux_head", "kind")
+#: per-rank entries bound to a rank's environments and data; dropped when resuming with another rank count
+RANK_DATA_KEYS = ("env", "storage", "current", "episode_returns", "buffer", "rng")
 
 LOSS_KEYS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction", "grad_norm", "aux_loss",
              "loss", "accuracy", "beta")
@@ -229,7 +246,18 @@ class RunContext:
         }
 
     def save_latest(self) -> None:
-        save_checkpoint(self.latest_path, self.checkpoint(with_trainer=True))
+        """Write ``latest.pth``. Under torchrun a collective: every rank sends its own resume state
+        (environments, RNGs, storage) to rank 0, which writes them all (``trainer["rank_states"]``)."""
+        if distributed.world_size() == 1:
+            save_checkpoint(self.latest_path, self.checkpoint(with_trainer=True))
+        else:
+            own = None if distributed.is_main() else {
+                k: v for k, v in self.algo.state_dict().items() if k not in REPLICATED_KEYS}
+            parts = distributed.gather_to_main(own)
+            if parts is not None:
+                state = self.checkpoint(with_trainer=True)
+                state["trainer"] = {**state["trainer"], "world_size": len(parts), "rank_states": parts[1:]}
+                save_checkpoint(self.latest_path, state)
         self.last_saved_update = self.algo.update
 
 
@@ -244,14 +272,19 @@ class Callback:
 
 
 def learn(ctx: RunContext, callbacks: Sequence[Callback], stop_at: int, stop: StopOnSignal) -> None:
-    """Run updates until ``stop_at`` updates are done or a stop is requested; callbacks do the rest."""
+    """Run updates until ``stop_at`` updates are done or a stop is requested; callbacks do the rest.
+
+    ``stop`` is a :class:`StopOnSignal`, or under torchrun an :class:`~findview_baselines.rl.distributed.AgreedStop`
+    (every rank stops at the same point); the stats of every update are reduced over the ranks before the
+    callbacks see them."""
     algo = ctx.algo
     try:
-        while algo.update < stop_at and not stop.requested:
+        while algo.update < stop_at and not stop.agree():
             try:
                 stats = algo.train_update(stop)
             except UpdateAbandoned as err:
                 log.info("%s", err)
+                stop.agree()  # every rank learns the signal (with preemption, some only saw it abandon)
                 break
             except FloatingPointError as err:
                 kept = (
@@ -263,9 +296,15 @@ def learn(ctx: RunContext, callbacks: Sequence[Callback], stop_at: int, stop: St
                     f"training diverged at update {algo.update + 1}: {err}; {kept}. Lower the learning rate or "
                     f"check the inputs, then re-run to resume from the last checkpoint."
                 ) from err
+            stats = distributed.reduce_stats(stats)
             for cb in callbacks:
                 cb.on_update(ctx, stats)
+    except BaseException:
+        ctx.extra["failed"] = True  # under torchrun: no more collectives (the other ranks may be gone)
+        raise
     finally:
+        if not ctx.extra.get("failed"):
+            stop.close()
         for cb in callbacks:
             cb.on_end(ctx, stop.requested)
 
@@ -358,6 +397,7 @@ class ValidationCallback(Callback):
         self.interval, self.at_end, self.tb = interval, at_end, tb
 
     def validate(self, ctx: RunContext) -> dict[str, Any]:
+        """Play the val episodes (rank 0 only: the other ranks have no val environment)."""
         from findview.metrics import summarize
         from findview_baselines.evaluation.harness import run_episodes
 
@@ -376,6 +416,9 @@ class ValidationCallback(Callback):
         due = (self.interval > 0 and update % self.interval == 0) or (self.at_end and update == ctx.num_updates)
         if not due:
             return
+        ctx.extra["validated_at"] = update  # on every rank: the checkpoint that follows is collective
+        if self.env is None:
+            return  # not rank 0
         ctx.last_val = self.validate(ctx)
         mean_eps = float(ctx.last_val["all"]["eps"])
         if ctx.best_val_eps is None or mean_eps < ctx.best_val_eps:
@@ -384,7 +427,6 @@ class ValidationCallback(Callback):
             log.info("new best val eps %.3f at update %d -> %s", mean_eps, update, ctx.best_path)
         if self.tb is not None:
             self.tb.add_validation(update, ctx.last_val, ctx.best_val_eps)
-        ctx.extra["validated_at"] = update
 
 
 class CheckpointCallback(Callback):
@@ -400,6 +442,8 @@ class CheckpointCallback(Callback):
             ctx.save_latest()
 
     def on_end(self, ctx: RunContext, stopped: bool) -> None:
+        if ctx.extra.get("failed") and distributed.world_size() > 1:
+            return  # a collective save could wait forever for a rank that failed; the last periodic one stays
         started = ctx.extra.get("session_start_update", 0)
         if (ctx.algo.update > started or stopped) and ctx.last_saved_update != ctx.algo.update:
             ctx.save_latest()
@@ -441,42 +485,87 @@ def _build_data(conf: Mapping[str, Any], dataset_cfg: Any, progress: bool) -> tu
     return train_images, val_episodes
 
 
-def make_algorithm(conf: Mapping[str, Any], env: Any, policy: Policy, scheduler: DifficultyScheduler, source: Any) -> Any:
-    """The algorithm of ``trainer.algorithm`` (``ppo`` | ``dagger``) around ``env`` and ``policy``."""
+def make_algorithm(conf: Mapping[str, Any], env: Any, policy: Policy, scheduler: DifficultyScheduler, source: Any,
+                   seed: int | None = None) -> Any:
+    """The algorithm of ``trainer.algorithm`` (``ppo`` | ``dagger``) around ``env`` and ``policy``.
+
+    ``seed``: seeds the algorithm's own generators (default ``trainer.seed``; rank ``r`` passes its own)."""
     t, agent = conf["trainer"], conf["agent"]
+    seed = int(t["seed"]) if seed is None else int(seed)
     set_level = lambda k: setattr(source, "level", k)  # noqa: E731
     if t.get("algorithm", "ppo") == "dagger":
         from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer
 
         dcfg = DAggerConfig.from_mapping(dict(t.get("dagger") or {}))
-        return DAggerTrainer(env, policy, dcfg, int(t["num_updates"]), scheduler, set_level, seed=int(t["seed"]))
+        return DAggerTrainer(env, policy, dcfg, int(t["num_updates"]), scheduler, set_level, seed=seed)
     from findview_baselines.rl.ppo import PPOConfig
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
     ppo_cfg = PPOConfig.from_mapping(agent)
-    return PPOTrainer(env, policy, ppo_cfg, int(t["num_updates"]), scheduler, set_level, seed=int(t["seed"]))
+    return PPOTrainer(env, policy, ppo_cfg, int(t["num_updates"]), scheduler, set_level, seed=seed)
 
 
 def train(cfg: Any, run_dir: str | Path, progress: bool | None = None) -> TrainResult:
     """Train (or resume) the learned agent described by ``cfg`` (the ``configs/train.yaml`` tree) in ``run_dir``.
 
+    With ``trainer.distributed=true`` this process is one rank of a torchrun job (see the module docstring);
+    it joins the job first and leaves it at the end.
+
     Raises:
         UserError / PermissionError / ValueError: a bad value, an unwritable folder, a run folder held by a
             live run, or a checkpoint that does not fit (naming the file and the way out).
         TrainingDiverged: a non-finite loss / weight; ``latest.pth`` keeps the last good state.
-        Interrupted: SIGTERM / SIGINT stopped the run after writing ``latest.pth``.
+        Interrupted: SIGTERM / SIGINT / SIGUSR1 stopped the run after writing ``latest.pth`` (under torchrun:
+            a signal to any rank; every rank raises it, with the same signal).
     """
+    t = cfg["trainer"]
+    joined = False
+    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if not bool(t.get("distributed", False)) and world > 1 and distributed.launched_by_torchrun():
+        raise UserError(f"started by torchrun with {world} processes but trainer.distributed=false: add "
+                        f"trainer.distributed=true (or run one process)")
+    if bool(t.get("distributed", False)) and not distributed.is_active():
+        from findview.sim import resolve_device
+
+        device = resolve_device(str(cfg["sim"].get("device") or "auto"))
+        distributed.setup(str(t.get("dist_backend") or "auto"), device, float(t.get("dist_timeout_min") or 60))
+        joined = True
+    try:
+        return _train_joined(cfg, run_dir, progress)
+    finally:
+        if joined:
+            distributed.teardown()
+
+
+def _take_lock(run_dir: Path) -> RunLock | None:
+    """Rank 0 locks the run folder; every rank learns whether that worked (UserError everywhere if not)."""
+    lock, error = None, None
+    if distributed.is_main():
+        try:
+            lock = RunLock(run_dir).__enter__()
+        except RunFolderBusy as err:
+            error = str(err)
+    error = distributed.all_gather(error)[0]
+    if error is not None:
+        raise UserError(error)
+    return lock
+
+
+def _train_joined(cfg: Any, run_dir: str | Path, progress: bool | None) -> TrainResult:
     run_dir = check_writable(run_dir, "run folder")
     check_writable(run_dir / "checkpoints", "checkpoint folder")
+    lock = _take_lock(run_dir)
     try:
-        lock = RunLock(run_dir).__enter__()
-    except RunFolderBusy as err:
-        raise UserError(str(err)) from None
-    try:
-        with no_distribution_validation(), StopOnSignal() as stop:
+        with no_distribution_validation(), StopOnSignal() as signals:
+            stop: Any = signals
+            if distributed.is_active():
+                stop = distributed.AgreedStop(signals, preemption=_preemption(cfg["trainer"]))
             result = _train_locked(cfg, run_dir, stop, progress)
+            if result.stopped_by is not None and distributed.world_size() > 1:
+                signals.ignore_after_exit()  # all saved; torchrun's SIGTERM to the last ranks must not kill them
     finally:
-        lock.__exit__(None, None, None)
+        if lock is not None:
+            lock.__exit__(None, None, None)
     if result.stopped_by is not None:
         import signal as _signal
 
@@ -489,7 +578,40 @@ def train(cfg: Any, run_dir: str | Path, progress: bool | None = None) -> TrainR
     return result
 
 
-def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | None) -> TrainResult:
+def _preemption(t: Any) -> distributed.Preemption | None:
+    """Straggler preemption of ``trainer.preempt_fraction`` (> 0, PPO, several ranks), else ``None``."""
+    fraction = float(t.get("preempt_fraction") or 0.0)
+    if fraction <= 0 or distributed.world_size() == 1:
+        return None
+    if str(t.get("algorithm", "ppo")) != "ppo":
+        raise UserError(f"trainer.preempt_fraction={fraction} works with trainer.algorithm=ppo only, not "
+                        f"{t.get('algorithm')!r}; set trainer.preempt_fraction=0")
+    return distributed.Preemption(fraction)
+
+
+def _rank_trainer_state(trainer: Mapping[str, Any], rank: int, world: int, seed: int) -> tuple[dict[str, Any], bool]:
+    """This rank's trainer state from ``latest.pth``'s ``trainer`` entry, and whether it continues exactly.
+
+    Same number of ranks as saved: rank 0's state with rank ``rank``'s own entries on top (exact). Another
+    number: rank 0's state without the environment-bound entries (:data:`RANK_DATA_KEYS`) and with every
+    generator state (``*_rng``) re-seeded from :func:`distributed.reseed`; the caller restarts the
+    environments."""
+    saved_world = int(trainer.get("world_size", 1))
+    state = {k: v for k, v in trainer.items() if k not in ("world_size", "rank_states")}
+    if saved_world == world:
+        if rank > 0:
+            state.update(trainer["rank_states"][rank - 1])
+        return state, True
+    update = int(trainer["update"])
+    for key in RANK_DATA_KEYS:
+        state[key] = None
+    generators = sorted(key for key in state if key.endswith("_rng"))
+    for i, key in enumerate(generators):
+        state[key] = torch.Generator().manual_seed(distributed.reseed(seed, rank, update) + i + 1).get_state()
+    return state, False
+
+
+def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> TrainResult:
     from findview.dataset import EpisodeSampler
     from findview_baselines.agents.ppo_agent import PPOAgent
 
@@ -497,8 +619,15 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
     dataset_cfg = cfg["dataset"]
     t, sim_cfg, task_cfg, agent_cfg = conf["trainer"], conf["sim"], conf["task"], conf["agent"]
     num_updates, num_envs, seed = int(t["num_updates"]), int(t["num_envs"]), int(t["seed"])
-    show_progress = bool(t.get("progress", True)) if progress is None else progress
+    rank, world, main = distributed.rank(), distributed.world_size(), distributed.is_main()
+    show_progress = (bool(t.get("progress", True)) if progress is None else progress) and main
     latest_path = run_dir / "checkpoints" / "latest.pth"
+    if distributed.is_active():
+        from findview.sim import resolve_device
+
+        device = resolve_device(str(sim_cfg.get("device") or "auto"))
+        if device.type == "cuda":  # one GPU per rank
+            sim_cfg = {**sim_cfg, "device": f"cuda:{distributed.local_rank()}"}
 
     resume_state: dict[str, Any] | None = None
     if bool(t.get("resume", True)) and latest_path.is_file():
@@ -508,22 +637,36 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
             raise UserError(f"{err}; move it away or start over with trainer.resume=false") from None
         if resume_state.get("trainer") is None:
             raise UserError(f"{latest_path} holds no trainer state; start over with trainer.resume=false")
-        _warn_config_changes(resume_state.get("config") or {}, conf)
-    elif latest_path.is_file():
+        if main:
+            _warn_config_changes(resume_state.get("config") or {}, conf)
+    elif latest_path.is_file() and main:
         log.warning("trainer.resume=false: starting over in %s (the old latest.pth will be overwritten)", run_dir)
+    if world > 1:
+        seen = distributed.all_gather(None if resume_state is None else int(resume_state["update"]))
+        if len(set(seen)) > 1:
+            raise UserError(f"the ranks see different resume states in {latest_path} (updates {seen} by rank): the "
+                            f"run folder must be on a file system every machine shares")
 
-    seed_everything(seed)
-    train_images, val_all = _build_data(conf, dataset_cfg, show_progress)
+    rank_state, exact = None, True
+    if resume_state is not None:
+        rank_state, exact = _rank_trainer_state(resume_state["trainer"], rank, world, seed)
+    # rank r: seed + r (rank 0 / a single process: trainer.seed); a resume with another rank count re-seeds
+    rank_seed = seed + rank
+    if resume_state is not None and not exact:
+        rank_seed = distributed.reseed(seed, rank, int(resume_state["update"]))
+    seed_everything(rank_seed)
+    train_images, val_all = distributed.main_first(lambda: _build_data(conf, dataset_cfg, show_progress))
+    train_images = distributed.shard(train_images, rank, world)
     need_val = bool(t.get("val_at_end", True)) or int(t.get("val_interval", 0)) > 0
-    val_episodes = select_val_episodes(val_all, t.get("val_episodes")) if need_val else []
-    if need_val and not val_episodes:
+    val_episodes = select_val_episodes(val_all, t.get("val_episodes")) if need_val and main else []
+    if need_val and main and not val_episodes:
         log.warning("no val episodes: validation and best.pth are skipped")
 
     sched_cfg = conf.get("scheduler") or {}
     scheduler = DifficultyScheduler(num_updates, num_levels=int(sched_cfg.get("num_levels", 3)),
                                     mode=str(sched_cfg.get("mode", "unbounded")))
     sampler = EpisodeSampler(
-        train_images, float(sim_cfg["fov"]), seed=seed, pitch_bound=int(task_cfg["pitch_bound"]),
+        train_images, float(sim_cfg["fov"]), seed=rank_seed, pitch_bound=int(task_cfg["pitch_bound"]),
         max_steps=int(task_cfg["max_steps"]), hard_rule=str(conf["dataset"].get("hard_rule", "or")),
     )
     val_envs = min(int(t.get("val_num_envs") or num_envs), len(val_episodes)) if val_episodes else 0
@@ -538,7 +681,12 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
         if val_episodes else None
     )
     policy = build_policy(agent_cfg, int(sim_cfg["height"]), int(sim_cfg["width"])).to(device)
-    algo = make_algorithm(conf, env, policy, scheduler, env.source)
+    algo = make_algorithm(conf, env, policy, scheduler, env.source, seed=rank_seed)
+    if getattr(stop, "preemption", None) is not None:
+        algo.preemption = stop.preemption
+    # the same initial weights everywhere (each rank seeded its own RNGs): rank 0's, incl. an auxiliary head
+    aux_heads = [getattr(algo, "aux_head", None), getattr(getattr(algo, "ppo", None), "aux_head", None)]
+    distributed.broadcast_modules([policy, *aux_heads])
     ctx = RunContext(algo, conf, run_dir, num_updates)
     ramp = None
     if env.target_transform is not None and int((conf.get("corruption") or {}).get("ramp_updates", 0)) > 0:
@@ -547,14 +695,19 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
 
     if resume_state is not None:
         try:
-            algo.load_state_dict(resume_state["trainer"], restore_rng=False)
+            algo.load_state_dict(rank_state, restore_rng=False)
         except (ValueError, KeyError, RuntimeError) as err:
             raise UserError(f"{latest_path} does not fit this run ({err}); start over with trainer.resume=false "
                             f"or train into another folder") from None
+        if not exact:
+            algo.start()  # fresh episodes on this rank's new shard
         ctx.best_val_eps = resume_state.get("best_val_eps")
         ctx.last_val = resume_state.get("val")
         ctx.last_saved_update = algo.update
-        log.info("resumed %s at update %d (%d env steps)", run_dir, algo.update, algo.env_steps)
+        saved_world = int(resume_state["trainer"].get("world_size", 1))
+        log.info("resumed %s at update %d (%d env steps)%s", run_dir, algo.update, algo.env_steps,
+                 "" if exact else f"; saved by {saved_world} rank(s), now {world}: weights, optimizer and schedule "
+                                  f"continue, environments restart with re-seeded episodes")
     else:
         if conf.get("init_from"):
             state = load_policy(Path(str(conf["init_from"])).expanduser(), policy)
@@ -566,23 +719,36 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
 
     from findview.utils import write_text
 
-    write_text(run_dir / "resolved_config.yaml", OmegaConf.to_yaml(OmegaConf.create(conf)))
+    if main:
+        write_text(run_dir / "resolved_config.yaml", OmegaConf.to_yaml(OmegaConf.create(conf)))
     if resume_state is not None:
-        restore_rng_state(resume_state["trainer"]["rng"])  # last: building the run consumed random numbers
+        if exact:
+            assert rank_state is not None
+            restore_rng_state(rank_state["rng"])  # last: building the run consumed random numbers
+        else:
+            seed_everything(rank_seed)
 
     stop_after = t.get("stop_after")
     stop_at = num_updates if stop_after is None else min(num_updates, algo.update + int(stop_after))
     ctx.extra.update(stop_at=stop_at, session_start_update=algo.update)
-    if algo.update >= num_updates:
+    if algo.update >= num_updates and main:
         log.info("run %s is already complete (%d updates); nothing to do", run_dir, algo.update)
-    steps_per_update = int(getattr(algo.cfg, "rollout_steps", 1)) * num_envs
-    tb = TensorBoardCallback(run_dir, int(t.get("log_interval", 10)),
-                             algo.update if resume_state is not None else -1, steps_per_update)
-    callbacks: list[Callback] = [ProgressCallback(num_updates, algo.update, show_progress, steps_per_update), tb]
+    steps_per_update = int(getattr(algo.cfg, "rollout_steps", 1)) * num_envs * world  # all ranks
+    callbacks: list[Callback] = []
+    tb = None
+    if main:
+        tb = TensorBoardCallback(run_dir, int(t.get("log_interval", 10)),
+                                 algo.update if resume_state is not None else -1, steps_per_update)
+        callbacks += [ProgressCallback(num_updates, algo.update, show_progress, steps_per_update), tb]
+    main_validates = distributed.all_gather(val_env is not None)[0]  # only rank 0 has val episodes
     if val_env is not None:
         agent = PPOAgent(policy, val_envs, device, seed, sample=bool(agent_cfg.get("sample", False)))
         callbacks.append(ValidationCallback(val_env, agent, int(t.get("val_interval", 0)),
                                             bool(t.get("val_at_end", True)), tb))
+    elif main_validates:
+        # not rank 0: keeps rank 0's validation schedule (and the collective checkpoints after it) in step
+        callbacks.append(ValidationCallback(None, None, int(t.get("val_interval", 0)), bool(t.get("val_at_end", True)),
+                                            None))
     callbacks.append(CheckpointCallback(int(t.get("checkpoint_interval", 100))))
     if ramp is not None:
         callbacks.insert(0, ramp)
@@ -590,10 +756,11 @@ def _train_locked(cfg: Any, run_dir: Path, stop: StopOnSignal, progress: bool | 
     session_start, t_start = algo.update, time.perf_counter()
     try:
         learn(ctx, callbacks, stop_at, stop)
+        distributed.barrier()  # nobody leaves before rank 0 has written its files
     finally:
         env.close()
     session_time = time.perf_counter() - t_start
-    if algo.update < num_updates and not stop.requested:
+    if algo.update < num_updates and not stop.requested and main:
         log.info("stopped at update %d of %d; re-run the same command to resume", algo.update, num_updates)
     return TrainResult(
         run_dir=run_dir,

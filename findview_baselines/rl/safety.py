@@ -90,18 +90,30 @@ class RunLock:
 
 
 class StopOnSignal:
-    """SIGTERM / SIGINT ask the run to stop at the next safe point instead of killing it.
+    """SIGTERM / SIGINT / SIGUSR1 ask the run to stop at the next safe point instead of killing it.
 
     The first signal sets :attr:`signum` (the run loop then abandons or finishes the current update,
-    writes ``latest.pth`` and exits with 128 + signum); a second SIGINT (Ctrl-C twice) raises
-    ``KeyboardInterrupt`` at once. Only installed in the main thread; the previous handlers come back on exit.
+    writes ``latest.pth`` and exits with 128 + signum: 143 / 130 / 138); a second SIGINT (Ctrl-C twice)
+    raises ``KeyboardInterrupt`` at once. SIGUSR1 is what a SLURM job gets before its time limit
+    (``--signal=USR1@120``, docs/CLUSTER.md). Only installed in the main thread; the previous handlers
+    come back on exit. Under torchrun, :class:`findview_baselines.rl.distributed.AgreedStop` makes every
+    rank stop when any one of them got a signal.
     """
 
-    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+    SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGUSR1)
 
     def __init__(self) -> None:
         self.signum: int | None = None
         self._previous: dict[int, Any] = {}
+        self._ignore_on_exit = False
+
+    def ignore_after_exit(self) -> None:
+        """On exit, ignore these signals instead of restoring the previous handlers.
+
+        For a rank of a torchrun job that stopped on a signal and is only exiting: the first rank to exit
+        with 128 + signum makes torchrun send SIGTERM to the others, which must still exit with their own
+        status instead of dying of it half-way through their exit."""
+        self._ignore_on_exit = True
 
     @property
     def requested(self) -> bool:
@@ -111,6 +123,13 @@ class StopOnSignal:
     def __call__(self) -> bool:
         """Same as :attr:`requested` (a ``should_stop`` callable for the algorithms)."""
         return self.signum is not None
+
+    def agree(self) -> bool:
+        """Same as :attr:`requested` (the run loop's check between updates; collective under torchrun)."""
+        return self.signum is not None
+
+    def close(self) -> None:
+        """Nothing to finish in a single process (see ``AgreedStop.close``)."""
 
     def _handle(self, signum: int, frame: Any) -> None:
         if self.signum is not None and signum == signal.SIGINT:
@@ -129,5 +148,6 @@ class StopOnSignal:
 
     def __exit__(self, *exc: Any) -> None:
         for s, handler in self._previous.items():
-            signal.signal(s, handler)
+            signal.signal(s, signal.SIG_IGN if self._ignore_on_exit else handler)
         self._previous.clear()
+
