@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from findview.dataset import EpisodeSampler, ImageEntry
+from findview.dataset.synthetic.colour_wheel import colour_wheel_panorama
 from findview.geometry import l1_distance
 from findview.metrics import aggregate
 from findview.task import FindViewEnv
@@ -63,24 +64,6 @@ LEARNING_SETUP = {
     "scheduler.num_levels": 1,  # easy episodes only
     "dataset.splits_to_make": "[]",  # no static val/test files needed
 }
-
-
-def colour_wheel_panorama(seed: int, width: int = 256) -> np.ndarray:
-    """``width/2 x width`` BGR image: hue turns once around the longitude (random phase), brightness falls
-    from the top to the bottom, plus 30 random discs."""
-    rng = np.random.default_rng(seed)
-    height = width // 2
-    u = np.arange(width, dtype=np.float64)[None, :].repeat(height, 0)
-    v = np.arange(height, dtype=np.float64)[:, None].repeat(width, 1)
-    hue = (rng.integers(0, 180) + 180.0 * u / width) % 180
-    value = 50 + 190 * (1 - v / height)
-    hsv = np.stack([hue, np.full_like(hue, 200), value], -1).astype(np.uint8)
-    image = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
-    for _ in range(30):
-        x, y = (int(c) for c in rng.integers(0, (width, height)))
-        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
-        cv2.circle(image, (x, y), int(rng.integers(2, height // 10)), colour, -1)
-    return image
 
 
 def run_random_agent(env: FindViewEnv, seed: int = 0) -> list[dict]:
