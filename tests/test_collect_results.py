@@ -226,3 +226,24 @@ def test_clear_runs_of_a_severity_sweep_are_not_conflicts(tmp_path):
     fake_run(tmp_path / "differ", "1", {**eps3, "hard": 9.0}, meta={"corruption": "none", "severity": 0})
     corruption_table(find_runs(tmp_path / "differ"), warn=warnings.append)
     assert len(warnings) == 1 and "hard" in warnings[0]
+
+
+def test_learned_agents_are_rows_named_by_their_checkpoint(tmp_path):
+    """Two checkpoints (with their own view size) and a rule-based agent land in one corruption table, the
+    learned rows labelled by the shortest distinct end of the checkpoint path."""
+    eps3 = {"easy": 3.0, "medium": 3.0, "hard": 3.0}
+    fake_run(tmp_path, "orb", eps3, meta={"corruption": "fog", "severity": 1})
+    for name, ckpt, eps in (("a", "/runs/a/checkpoints/best.pth", 1.0), ("b", "/runs/b/checkpoints/best.pth", 2.0)):
+        fake_run(tmp_path, name, {d: eps for d in eps3}, agent="ppo", checkpoint=ckpt,
+                 meta={"corruption": "fog", "severity": 1})
+        cfg_path = tmp_path / name / ".hydra" / "config.yaml"
+        cfg = json.loads(cfg_path.read_text())
+        cfg["sim"]["height"] = cfg["sim"]["width"] = 32  # the learned agents' view size differs from orb's
+        cfg_path.write_text(json.dumps(cfg))
+    text = corruption_table(find_runs(tmp_path))
+    assert text.count("## ") == 1
+    assert table_rows(text, "severity 1")[1:] == [
+        "| orb | 3.00 |",
+        "| ppo (checkpoint=a/checkpoints/best.pth) | 1.00 |",
+        "| ppo (checkpoint=b/checkpoints/best.pth) | 2.00 |",
+    ]

@@ -358,8 +358,12 @@ def _row_keys(mode: str) -> Callable[[str], bool]:
         return lambda k: k == "difficulty" or k == "agent" or k.startswith("agent.")
     if mode != "corruption":
         raise ValueError(f"unknown table layout {mode!r}; expected thresholds or corruption")
-    # corruption: rows agent, columns corruption, one table per severity, eps averaged over difficulties
-    return lambda k: k in ("difficulty", "corruption", "severity", "agent") or k.startswith("agent.")
+    # corruption: rows agent, columns corruption, one table per severity, eps averaged over difficulties.
+    # A learned agent is its checkpoint, and its view size comes from it: rows too, not separate tables
+    return lambda k: k in ("difficulty", "corruption", "severity", "agent", *LEARNED_AGENT_KEYS) or k.startswith("agent.")
+
+
+LEARNED_AGENT_KEYS = ("checkpoint", "sim.height", "sim.width")
 
 
 def group_runs(runs: Sequence[EvalRun], mode: str = "thresholds") -> list[RunGroup]:
@@ -375,18 +379,37 @@ def group_runs(runs: Sequence[EvalRun], mode: str = "thresholds") -> list[RunGro
     return [RunGroup(ctx, rs) for ctx, rs in sorted(groups.items())]
 
 
+def _short_paths(paths: Sequence[str]) -> dict[str, str]:
+    """The shortest trailing part of each path (whole components) that tells it apart from the others."""
+    parts = {p: Path(p).parts for p in set(paths)}
+    short: dict[str, str] = {}
+    for p, comps in parts.items():
+        for n in range(1, len(comps) + 1):
+            tail = comps[-n:]
+            if all(q == p or tuple(other[-n:]) != tuple(tail) for q, other in parts.items()):
+                break
+        short[p] = str(Path(*tail)) if comps else p
+    return short
+
+
 def agent_labels(runs: Sequence[EvalRun], swept: Sequence[str] = ("agent.d_thresh",)) -> dict[Path, str]:
     """Row label per run folder: the agent's name, plus the agent settings other than ``swept`` in
-    which runs of that agent differ (``orb (agent.n_features=1000)``), so that they are never merged."""
+    which runs of that agent differ (``orb (agent.n_features=1000)``; a learned agent's checkpoint by the
+    shortest distinct end of its path, ``ppo (checkpoint=before.pth)``), so that they are never merged."""
     labels: dict[Path, str] = {}
     by_name: dict[str, list[EvalRun]] = {}
     for r in runs:
         by_name.setdefault(r.agent, []).append(r)
     for name, rs in by_name.items():
-        keys = sorted({k for r in rs for k in r.settings if (k == "agent" or k.startswith("agent.")) and k not in swept})
+        keys = sorted({k for r in rs for k in r.settings
+                       if (k == "agent" or k.startswith("agent.") or k in LEARNED_AGENT_KEYS) and k not in swept})
         varying = [k for k in keys if k != "agent.name" and len({r.settings.get(k, "<unset>") for r in rs}) > 1]
+        short = _short_paths([r.settings.get("checkpoint", "<unset>") for r in rs])
         for r in rs:
-            extra = ", ".join(f"{k}={r.settings.get(k, '<unset>')}" for k in varying)
+            extra = ", ".join(
+                f"{k}={short[r.settings.get(k, '<unset>')] if k == 'checkpoint' else r.settings.get(k, '<unset>')}"
+                for k in varying
+            )
             labels[r.path] = f"{name} ({extra})" if extra else name
     return labels
 
