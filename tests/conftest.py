@@ -80,3 +80,12 @@ def reference_run(panorama_folder: Path, dataset_out: Path, tmp_path_factory: py
     return run_dir
 
 
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Small networks run fastest on one torch thread, and a second one stalls on a busy machine."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

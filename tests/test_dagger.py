@@ -37,13 +37,7 @@ from findview_baselines.rl.scheduler import DifficultyScheduler
 UP, DOWN, LEFT, RIGHT, STOP = (int(a) for a in (Action.UP, Action.DOWN, Action.LEFT, Action.RIGHT, Action.STOP))
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """These small networks run fastest on one thread, and a second one stalls on a busy machine."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def t(*values: int) -> torch.Tensor:

@@ -17,12 +17,7 @@ from findview_baselines.rl.policy import (
 )
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def images(n: int = 3, size: int = 32, seed: int = 0) -> torch.Tensor:

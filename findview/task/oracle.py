@@ -229,36 +229,37 @@ def pan_action_mask(
     return torch.where(overlap[:, None], optimal, search)
 
 
+def _env_rotations(env: Any, search: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float, int]:
+    """``(pitch, yaw, target_pitch, target_yaw, fov, step_deg)`` of ``env`` after checking ``search``."""
+    if search not in SEARCH_PRIORS:
+        raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
+    step = int(getattr(env, "step_deg", 1))
+    return env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step
+
+
 def oracle_actions_for(env: Any, order: str = "pitch_first", search: str = "oracle") -> torch.Tensor:
     """Labels for the environments' current observations, (N,) long on ``env.device``.
 
     Reads ``env.pitch, env.yaw, env.target_pitch, env.target_yaw`` (and ``env.step_deg``, ``env.sim.fov``).
     ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`; ``search="pan"``:
-    :func:`pan_actions`. Call it before
-    ``env.step`` to label the observation the policy acts on.
+    :func:`pan_actions`. Call it before ``env.step`` to label the observation the policy acts on.
     """
-    if search not in SEARCH_PRIORS:
-        raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
-    step = int(getattr(env, "step_deg", 1))
-    if search == "sweep":
-        return sweep_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step, order)
-    if search == "pan":
-        return pan_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step, order)
-    return oracle_actions(env.pitch, env.yaw, env.target_pitch, env.target_yaw, step, order)
+    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search)
+    if search == "oracle":
+        return oracle_actions(pitch, yaw, tp, ty, step, order)
+    prior = sweep_actions if search == "sweep" else pan_actions
+    return prior(pitch, yaw, tp, ty, fov, step, order)
 
 
 def optimal_action_mask_for(env: Any, search: str = "oracle") -> torch.Tensor:
     """(N, 5) bool action sets of the environments' current observations (``search`` as in
     :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`,
     ``pan`` -> :func:`pan_action_mask`)."""
-    if search not in SEARCH_PRIORS:
-        raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
-    step = int(getattr(env, "step_deg", 1))
-    if search == "sweep":
-        return sweep_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step)
-    if search == "pan":
-        return pan_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step)
-    return optimal_action_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, step)
+    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search)
+    if search == "oracle":
+        return optimal_action_mask(pitch, yaw, tp, ty, step)
+    prior = sweep_action_mask if search == "sweep" else pan_action_mask
+    return prior(pitch, yaw, tp, ty, fov, step)
 
 
 def rotation_targets(
