@@ -213,6 +213,10 @@ class PPOAgentConfig(PPOConfig):
     1 = full resolution only. Part of the checkpoint signature."""
     sample: bool = False
     """Draw actions from the policy at validation / evaluation time instead of taking the argmax."""
+    revisit_penalty: float = 0.0
+    """Search memory at validation / evaluation time: logit units subtracted from a move per earlier visit
+    of the pose it leads to (poses dead-reckoned from the agent's own moves; breaks left/right loops). 0 = off,
+    the plain policy. See findview_baselines/agents/revisit.py."""
     precision: str = "fp32"
     """Encoder compute dtype while training: fp32 | bf16 (torch.autocast on the policy's device, CPU or
     CUDA; the GRU, the heads and the weights stay float32, so checkpoints do not depend on it)."""
@@ -240,6 +244,7 @@ class PPOAgentConfig(PPOConfig):
         check(self.num_mini_batches >= 1, "agent.num_mini_batches", self.num_mini_batches, "a positive integer")
         check(0 < self.gamma <= 1, "agent.gamma", self.gamma, "a discount in (0, 1]")
         check(self.aux_coef >= 0, "agent.aux_coef", self.aux_coef, "0 (off) or a positive weight")
+        check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
 
 
 # ------------------------------------------------------------------------------------------------

@@ -440,3 +440,26 @@ def test_eval_tool_with_checkpoint(folder_ds, tiny_ckpt, tmp_path):
     cfg = OmegaConf.create({"agent": {"name": "ppo"}, "checkpoint": str(ckpt), "seed": 0, "sim": {"height": 256, "width": 256}})
     with pytest.raises(EvalError, match=r"64x64.*sim.height=256"):
         build_agent(cfg, 2, torch.device("cpu"))
+
+
+def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_line(tiny_ckpt, tmp_path):
+    from omegaconf import OmegaConf
+
+    from findview_baselines.evaluation.evaluate import apply_checkpoint_config, build_agent
+
+    state = torch.load(tiny_ckpt, weights_only=True)
+    state["config"] = {"agent": {"revisit_penalty": 1.5}, "sim": {"fov": 90.0}}
+    ckpt = tmp_path / "with_run_config.pth"
+    torch.save(state, ckpt)
+
+    def agent_for(path: Path, overrides: list[str], penalty: float | None):
+        agent_cfg = {"name": "ppo"} if penalty is None else {"name": "ppo", "revisit_penalty": penalty}
+        cfg = OmegaConf.create({"agent": agent_cfg, "checkpoint": str(path), "seed": 0,
+                                "sim": {"height": 256, "width": 256, "fov": 90.0}})
+        apply_checkpoint_config(cfg, overrides)
+        return build_agent(cfg, 2, torch.device("cpu"))[0]
+
+    assert agent_for(ckpt, [], None).revisits.penalty == 1.5  # the training run's setting
+    assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
+    assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
+    assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy

@@ -8,6 +8,9 @@
   distribution with one random stream per episode (seeded from the agent seed and the episode's id),
   so a trajectory does not depend on which slot or batch the episode ran in.
 - A slot that answered STOP keeps answering STOP without running the network until it is reset.
+- ``revisit_penalty > 0`` switches on a search memory (:class:`~findview_baselines.agents.revisit.RevisitPenalty`):
+  each move's logit is lowered by that many logit units per earlier visit of the pose it leads to (poses
+  dead-reckoned from the agent's own actions), which breaks left/right loops. 0 (the default) is the plain policy.
 
 Checkpoints are read with ``torch.load(..., weights_only=True)``; the layout is the one written by the
 trainer (``{"signature": {...}, "policy": state_dict, ...}``, see ``findview_baselines.rl.checkpoint``).
@@ -27,6 +30,7 @@ import torch
 
 from findview.episode import Episode
 from findview_baselines.agents.base import STOP, Agent, episode_rng, to_plain_dict
+from findview_baselines.agents.revisit import RevisitPenalty
 
 __all__ = ["PPOAgent", "load_ppo_checkpoint"]
 
@@ -50,14 +54,22 @@ class PPOAgent(Agent):
         policy: a :class:`findview_baselines.rl.Policy` (moved to ``device``, put in eval mode).
         num_envs, device, seed: see :class:`Agent`; ``device`` is where the network runs.
         sample: draw actions from the policy instead of taking the argmax.
+        revisit_penalty: logit units subtracted from a move per earlier visit of its destination pose
+            (0: off; see :mod:`findview_baselines.agents.revisit`).
     """
 
     name = "ppo"
     #: keys of configs/agent/ppo.yaml used here; every other key (training hyper-parameters) is ignored
-    CONFIG_KEYS = ("checkpoint", "sample", "height", "width")
+    CONFIG_KEYS = ("checkpoint", "sample", "height", "width", "revisit_penalty")
 
     def __init__(
-        self, policy: torch.nn.Module, num_envs: int, device: str | torch.device = "cpu", seed: int = 0, sample: bool = False
+        self,
+        policy: torch.nn.Module,
+        num_envs: int,
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+        sample: bool = False,
+        revisit_penalty: float = 0.0,
     ) -> None:
         super().__init__(num_envs, device, seed)
         self.policy = policy.to(self.device).eval()
@@ -66,6 +78,10 @@ class PPOAgent(Agent):
         self.done = np.zeros(self.num_envs, dtype=bool)
         self._fallback = np.random.default_rng(self.seed)
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
+        penalty = float(revisit_penalty)
+        if penalty < 0 or penalty != penalty:
+            raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
+        self.revisits = RevisitPenalty(self.num_envs, penalty, self.device) if penalty > 0 else None
 
     # construction --------------------------------------------------------------------------------
     @classmethod
@@ -78,6 +94,7 @@ class PPOAgent(Agent):
         sample: bool = False,
         height: int | None = None,
         width: int | None = None,
+        revisit_penalty: float = 0.0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -108,18 +125,20 @@ class PPOAgent(Agent):
             policy.load_state_dict(state["policy"])
         except RuntimeError as err:
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
-        return cls(policy, num_envs, device, seed, sample)
+        return cls(policy, num_envs, device, seed, sample, revisit_penalty)
 
     @classmethod
     def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "PPOAgent":
         """Factory for :func:`make_agent`: ``cfg`` holds ``checkpoint`` (required), optionally ``sample``
-        (draw actions instead of the argmax) and the expected ``height`` / ``width``; training keys are ignored."""
+        (draw actions instead of the argmax), ``revisit_penalty`` and the expected ``height`` / ``width``;
+        training keys are ignored."""
         c = to_plain_dict(cfg)
         if not c.get("checkpoint"):
             raise ValueError("agent 'ppo' needs a checkpoint: pass checkpoint=<path to a .pth file>")
         sample = bool(c.get("sample", False))
         return cls.from_checkpoint(
-            c["checkpoint"], num_envs, device, seed, bool(sample), height=c.get("height"), width=c.get("width")
+            c["checkpoint"], num_envs, device, seed, bool(sample), height=c.get("height"), width=c.get("width"),
+            revisit_penalty=float(c.get("revisit_penalty") or 0.0),
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -129,6 +148,8 @@ class PPOAgent(Agent):
         if not ids:
             return
         self.hidden[torch.tensor(ids, device=self.hidden.device)] = 0.0
+        if self.revisits is not None:
+            self.revisits.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
         for i, ep in zip(ids, episodes):
             self.done[i] = ep is None
             self._rngs[i] = episode_rng(self.seed, ep, self._fallback)
@@ -150,14 +171,20 @@ class PPOAgent(Agent):
                 self.hidden = h_new
             else:
                 self.hidden[idx] = h_new
+            logits = dist.logits
+            if self.revisits is not None:
+                logits = self.revisits.adjust(idx, v, logits)
             if self.sample:
-                probs = dist.probs.double().cpu().numpy()
+                p_t = dist.probs if self.revisits is None else torch.softmax(logits, dim=-1)
+                probs = p_t.double().cpu().numpy()
                 cdf = np.cumsum(probs, axis=1)
                 u = np.array([self._rngs[i].random() for i in work])
                 a = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), probs.shape[1] - 1)
                 a_t = torch.as_tensor(a, dtype=torch.long, device=self.device)
             else:
-                a_t = dist.logits.argmax(dim=-1)
+                a_t = logits.argmax(dim=-1)
+            if self.revisits is not None:
+                self.revisits.moved(idx, a_t)
             actions[idx] = a_t
             self.done[work[(a_t == STOP).cpu().numpy()]] = True
         return actions.to(view.device)

@@ -196,7 +196,8 @@ def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> d
 
     ``sim.fov`` / ``sim.height`` / ``sim.width`` come from the checkpoint unless given on the command
     line (or a ``sim=`` preset was chosen); ``cfg.agent`` becomes the checkpoint's learned-agent config
-    (keeping ``agent.sample`` when ``agent=ppo`` was given). Edits ``cfg`` in place; returns the
+    (keeping ``agent.sample`` when ``agent=ppo`` was given; ``agent.revisit_penalty`` from the command line,
+    else the training run's). Edits ``cfg`` in place; returns the
     checkpoint's run config (``{}`` when it has none).
 
     Raises:
@@ -222,11 +223,16 @@ def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> d
         if "fov" in trained_sim and not _overridden(overrides, "sim", "sim.fov"):
             cfg.sim.fov = float(trained_sim["fov"])
         sample = bool(_get(cfg, "agent.sample", False)) if _get(cfg, "agent.name") == "ppo" else False
+        if _overridden(overrides, "agent.revisit_penalty"):
+            revisit = float(_get(cfg, "agent.revisit_penalty", 0.0))
+        else:  # the setting the run validated with
+            revisit = float(dict(run_conf.get("agent") or {}).get("revisit_penalty", 0.0) or 0.0)
         cfg.agent = OmegaConf.create({
             "name": "ppo",
             "variant": str(sig.get("variant", "early_fusion")),
             "hidden_size": int(sig.get("hidden_size", 512)),
             "sample": sample,
+            "revisit_penalty": revisit,
         })
     return run_conf
 
@@ -251,6 +257,7 @@ def build_agent(cfg: DictConfig, num_envs: int, device: Any, agent_explicit: boo
             agent = PPOAgent.from_checkpoint(
                 os.path.expanduser(str(checkpoint)), num_envs, device, seed, bool(sample),
                 height=int(_get(cfg, "sim.height", 256)), width=int(_get(cfg, "sim.width", 256)),
+                revisit_penalty=float(_get(cfg, "agent.revisit_penalty", 0.0) or 0.0),
             )
         except (FileNotFoundError, ValueError) as err:
             raise EvalError(str(err)) from err

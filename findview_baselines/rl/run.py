@@ -742,7 +742,8 @@ def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> 
         callbacks += [ProgressCallback(num_updates, algo.update, show_progress, steps_per_update), tb]
     main_validates = distributed.all_gather(val_env is not None)[0]  # only rank 0 has val episodes
     if val_env is not None:
-        agent = PPOAgent(policy, val_envs, device, seed, sample=bool(agent_cfg.get("sample", False)))
+        agent = PPOAgent(policy, val_envs, device, seed, sample=bool(agent_cfg.get("sample", False)),
+                         revisit_penalty=float(agent_cfg.get("revisit_penalty", 0.0) or 0.0))
         callbacks.append(ValidationCallback(val_env, agent, int(t.get("val_interval", 0)),
                                             bool(t.get("val_at_end", True)), tb))
     elif main_validates:

@@ -1,0 +1,129 @@
+"""Search memory for learned agents: penalise moves back to poses the agent has already visited.
+
+A recurrent policy that is unsure which way the target lies can settle into a loop: left, right, left,
+right, ... until the episode is forced to end at ``T``. :class:`RevisitPenalty` breaks such loops without
+any privileged information. The agent dead-reckons its own moves: it keeps, per environment slot, its
+offset from the episode's start pose on the 1-step action grid (``UP`` = +1 pitch step, ``DOWN`` = -1,
+``RIGHT`` = +1 yaw step, ``LEFT`` = -1; yaw wraps after ``360 / step_deg`` steps) and counts the visits
+of every offset. Before the argmax, each move's logit is lowered by ``penalty x visits(destination)``:
+
+- a move the policy prefers by a wide margin is still taken the first times;
+- in a 2-cycle the visit counts of both poses grow by one per round, so after a few rounds another
+  move (the policy's next choice) wins and the agent leaves the loop;
+- the stop decision is the policy's own: where its argmax is ``STOP`` the agent stops, and nowhere else
+  (penalised moves never make ``STOP`` win by default).
+
+A move that leaves the view unchanged (``UP`` / ``DOWN`` against the simulator's pitch limit) does not
+move the dead-reckoned pose, and the cell it aimed at gains a visit, so pressing into the limit loses its
+appeal like a loop does.
+
+Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at 1 degree) on the policy's device; every
+operation is batched over the slots (no Python loop over environments).
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["RevisitPenalty"]
+
+#: (pitch, yaw) grid steps of UP, DOWN, LEFT, RIGHT (STOP does not move)
+_MOVES = ((1, 0), (-1, 0), (0, -1), (0, 1))
+
+
+class RevisitPenalty:
+    """Dead-reckoned visit counts per slot, and the logit penalty they imply.
+
+    Args:
+        num_envs: number of environment slots ``N``.
+        penalty: logit units subtracted per earlier visit of a move's destination (``> 0``).
+        device: where the counts live (the policy's device).
+        step_deg: degrees per action (the yaw grid has ``360 / step_deg`` cells).
+        max_pitch_steps: pitch offsets are clamped to ``[-max_pitch_steps, max_pitch_steps]`` steps
+            (180 degrees covers any start and target).
+    """
+
+    def __init__(
+        self, num_envs: int, penalty: float, device: str | torch.device = "cpu", step_deg: int = 1,
+        max_pitch_steps: int | None = None,
+    ) -> None:
+        if not penalty > 0:
+            raise ValueError(f"revisit penalty must be > 0 logit units per visit, got {penalty}")
+        if int(step_deg) < 1 or 360 % int(step_deg):
+            raise ValueError(f"step_deg must be a positive divisor of 360, got {step_deg}")
+        self.penalty = float(penalty)
+        self.device = torch.device(device)
+        self.yaw_cells = 360 // int(step_deg)
+        self.max_pitch = int(max_pitch_steps if max_pitch_steps is not None else 180 // int(step_deg))
+        n = int(num_envs)
+        self.visits = torch.zeros((n, 2 * self.max_pitch + 1, self.yaw_cells), dtype=torch.int16, device=self.device)
+        self.pitch = torch.zeros(n, dtype=torch.long, device=self.device)  # offset in steps, 0 at the start
+        self.yaw = torch.zeros(n, dtype=torch.long, device=self.device)  # offset in steps, in [0, yaw_cells)
+        self.last_move = torch.full((n,), -1, dtype=torch.long, device=self.device)  # -1: none pending
+        self.last_view: torch.Tensor | None = None
+        self._moves = torch.tensor(_MOVES, dtype=torch.long, device=self.device)  # (4, 2)
+
+    def reset(self, env_ids: torch.Tensor) -> None:
+        """Slots ``env_ids`` (long tensor) start a new episode at offset (0, 0) with no visits."""
+        ids = env_ids.to(self.device)
+        self.visits[ids] = 0.0
+        self.pitch[ids] = 0
+        self.yaw[ids] = 0
+        self.last_move[ids] = -1
+
+    def _destinations(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pitch row and yaw column of each move's destination: two ``(K, 4)`` long tensors."""
+        p = (self.pitch[idx, None] + self._moves[None, :, 0]).clamp(-self.max_pitch, self.max_pitch) + self.max_pitch
+        y = (self.yaw[idx, None] + self._moves[None, :, 1]) % self.yaw_cells
+        return p, y
+
+    def adjust(self, idx: torch.Tensor, view: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+        """Record the arrival of slots ``idx`` at their current pose; return penalised logits.
+
+        Args:
+            idx: ``(K,)`` long slot indices acting now.
+            view: ``(K, 3, H, W)`` uint8, their current views (a move that left the view unchanged was blocked).
+            logits: ``(K, 5)`` action logits (``UP, DOWN, LEFT, RIGHT, STOP``).
+
+        Returns:
+            ``(K, 5)`` logits: where the policy's argmax is ``STOP``, only ``STOP`` is finite; elsewhere ``STOP`` is
+            ``-inf`` and each move has ``penalty x visits(destination)`` subtracted.
+        """
+        idx = idx.to(self.device)
+        view = view.to(self.device)
+        self._settle(idx, view)
+        rows = self.pitch[idx] + self.max_pitch
+        self.visits[idx, rows, self.yaw[idx]] += 1
+        p, y = self._destinations(idx)
+        seen = self.visits[idx[:, None], p, y]  # (K, 4)
+        out = logits.clone()
+        out[:, :4] = out[:, :4] - self.penalty * seen.to(out.dtype)
+        # the stop decision stays the policy's own: penalised moves must not make STOP win by default
+        stop = logits.argmax(dim=-1) == 4
+        out[:, 4] = torch.where(stop, logits[:, 4], torch.full_like(logits[:, 4], float("-inf")))
+        out[stop] = torch.where(torch.arange(5, device=out.device) == 4, logits[stop], torch.full_like(logits[stop], float("-inf")))
+        return out
+
+    def moved(self, idx: torch.Tensor, actions: torch.Tensor) -> None:
+        """Slots ``idx`` take ``actions`` ``(K,)``; their poses move at the next :meth:`adjust`."""
+        self.last_move[idx.to(self.device)] = torch.where(actions < 4, actions, torch.full_like(actions, -1)).to(self.device)
+
+    def _settle(self, idx: torch.Tensor, view: torch.Tensor) -> None:
+        """Apply the pending moves of ``idx`` unless the view did not change (a blocked move)."""
+        if self.last_view is None or self.last_view.shape[1:] != view.shape[1:]:
+            self.last_view = torch.zeros((self.pitch.shape[0],) + tuple(view.shape[1:]), dtype=view.dtype, device=self.device)
+        move = self.last_move[idx]
+        changed = (self.last_view[idx] != view).flatten(1).any(dim=1)
+        go = (move >= 0) & changed
+        step = self._moves[move.clamp(min=0)]  # (K, 2)
+        blocked = (move >= 0) & ~changed
+        if bool(blocked.any()):  # count the unreachable cell as visited, so the blocked move loses its appeal
+            b = idx[blocked]
+            p = (self.pitch[b] + step[blocked, 0]).clamp(-self.max_pitch, self.max_pitch) + self.max_pitch
+            y = (self.yaw[b] + step[blocked, 1]) % self.yaw_cells
+            self.visits[b, p, y] += 1
+        step = step * go[:, None].long()
+        self.pitch[idx] = (self.pitch[idx] + step[:, 0]).clamp(-self.max_pitch, self.max_pitch)
+        self.yaw[idx] = (self.yaw[idx] + step[:, 1]) % self.yaw_cells
+        self.last_move[idx] = -1
+        self.last_view[idx] = view

@@ -1,0 +1,138 @@
+"""The learned agents' search memory (findview_baselines/agents/revisit.py), against hand-worked walks."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
+from findview_baselines.agents.revisit import RevisitPenalty
+
+
+def pose_view(pitch: int, yaw: int) -> torch.Tensor:
+    """A (3, 2, 2) uint8 image unique to a pose (the simulator's view changes with every move)."""
+    img = torch.zeros(3, 2, 2, dtype=torch.uint8)
+    img[0, 0, 0] = pitch % 256
+    img[1, 0, 0] = yaw % 360 % 256
+    img[2, 0, 0] = yaw % 360 // 256
+    return img
+
+
+class LoopWorld:
+    """One agent on a 1-degree grid whose policy prefers RIGHT at even yaw and LEFT at odd yaw (margin 1 logit
+    over UP; DOWN and STOP far below): the plain argmax loops between yaw 0 and 1 forever."""
+
+    def __init__(self, pitch_limit: int = 90) -> None:
+        self.pitch, self.yaw, self.limit = 0, 0, pitch_limit
+
+    def logits(self) -> torch.Tensor:
+        row = torch.tensor([0.0, -5.0, -5.0, -5.0, -5.0])
+        row[RIGHT if self.yaw % 2 == 0 else LEFT] = 1.0
+        return row[None]
+
+    def step(self, action: int) -> None:
+        if action == UP:
+            self.pitch = min(self.pitch + 1, self.limit)
+        elif action == DOWN:
+            self.pitch = max(self.pitch - 1, -self.limit)
+        elif action == LEFT:
+            self.yaw -= 1
+        elif action == RIGHT:
+            self.yaw += 1
+
+
+def walk(penalty: float, steps: int, pitch_limit: int = 90) -> list[int]:
+    world, guard = LoopWorld(pitch_limit), RevisitPenalty(1, penalty) if penalty > 0 else None
+    idx, actions = torch.tensor([0]), []
+    for _ in range(steps):
+        logits = world.logits()
+        if guard is not None:
+            logits = guard.adjust(idx, pose_view(world.pitch, world.yaw)[None], logits)
+        a = int(logits.argmax(dim=-1))
+        if guard is not None:
+            guard.moved(idx, torch.tensor([a]))
+        actions.append(a)
+        world.step(a)
+    return actions
+
+
+def test_plain_policy_loops_and_the_penalty_breaks_the_loop():
+    assert walk(0.0, 8) == [RIGHT, LEFT] * 4
+    # penalty 2: at yaw 1 (first visit), LEFT leads back to yaw 0 (1 visit): 1 - 2 = -1 < UP's 0 -> UP
+    assert walk(2.0, 2) == [RIGHT, UP]
+    # penalty 0.3: LEFT / RIGHT cost 0.3 per visit of the pose they lead to. Its visits at steps 1..8:
+    # 0, 1, 1, 2, 2, 3, 3, 4 -> the preferred move is worth 1, 0.7, 0.7, 0.4, 0.4, 0.1, 0.1, -0.2 against UP's 0
+    assert walk(0.3, 8) == [RIGHT, LEFT] * 3 + [RIGHT, UP]
+
+
+def test_dead_reckoning_and_visit_counts():
+    guard = RevisitPenalty(2, 1.0)
+    idx = torch.tensor([1])
+    pose = [0, 0]
+    for a in (RIGHT, RIGHT, LEFT, UP, LEFT, LEFT, LEFT):
+        guard.adjust(idx, pose_view(*pose)[None], torch.zeros(1, 5))
+        guard.moved(idx, torch.tensor([a]))
+        pose[0] += {UP: 1, DOWN: -1}.get(a, 0)
+        pose[1] += {RIGHT: 1, LEFT: -1}.get(a, 0)
+    guard.adjust(idx, pose_view(*pose)[None], torch.zeros(1, 5))
+    assert (int(guard.pitch[1]), int(guard.yaw[1])) == (1, 358)  # yaw -2 wraps to 358
+    m = guard.max_pitch
+    v = guard.visits[1]
+    assert int(v[m, 0]) == 1 and int(v[m, 1]) == 2 and int(v[m, 2]) == 1  # yaw 1 visited twice
+    assert [int(v[m + 1, y]) for y in (1, 0, 359, 358)] == [1, 1, 1, 1]
+    assert int(v.sum()) == 8
+    assert int(guard.visits[0].sum()) == 0  # the other slot never acted
+
+
+def test_a_blocked_move_counts_as_a_revisit():
+    # pitch limit 0: UP leaves the view unchanged, so the pose stays and its visit count grows
+    guard = RevisitPenalty(1, 1.0)
+    idx = torch.tensor([0])
+    view = pose_view(0, 0)[None]
+    for _ in range(3):
+        out = guard.adjust(idx, view, torch.tensor([[1.0, -5.0, 0.0, 0.0, -5.0]]))
+        guard.moved(idx, torch.tensor([UP]))  # the test presses UP whatever the penalty says
+    assert (int(guard.pitch[0]), int(guard.yaw[0])) == (0, 0)
+    assert int(guard.visits[0, guard.max_pitch, 0]) == 3
+    # UP's destination (pitch +1) was never reached, but each of the 2 blocked tries counts as a visit of it:
+    # at the 3rd choice UP is worth 1 - 2 x 1.0; LEFT / RIGHT lead to empty cells
+    assert int(guard.visits[0, guard.max_pitch + 1, 0]) == 2
+    assert out[0, :4].tolist() == [-1.0, -5.0, 0.0, 0.0]
+
+
+def test_stop_stays_the_policys_decision():
+    guard = RevisitPenalty(2, 10.0)
+    idx = torch.tensor([0, 1])
+    views = torch.stack([pose_view(0, 0), pose_view(5, 5)])
+    # slot 0 wants to stop: it stops; slot 1 prefers a move slightly, STOP is second: after its moves are
+    # penalised below STOP's logit, it must still move, never stop
+    logits = torch.tensor([[0.0, 0.0, 0.0, 0.0, 3.0], [1.0, 0.0, 0.0, 0.0, 0.9]])
+    for _ in range(6):
+        out = guard.adjust(idx, views, logits)
+        acts = out.argmax(dim=-1)
+        assert int(acts[0]) == STOP and int(acts[1]) != STOP
+        guard.moved(idx, torch.tensor([STOP, int(acts[1])]))
+        views[1] = views[1] + 1  # slot 1's view changes with every move
+    assert torch.isinf(out[0, :4]).all() and torch.isinf(out[1, 4])
+
+
+def test_reset_forgets_and_bad_values_are_refused():
+    guard = RevisitPenalty(1, 1.0)
+    idx = torch.tensor([0])
+    guard.adjust(idx, pose_view(0, 0)[None], torch.zeros(1, 5))
+    guard.moved(idx, torch.tensor([RIGHT]))
+    guard.adjust(idx, pose_view(0, 1)[None], torch.zeros(1, 5))
+    guard.reset(idx)
+    assert int(guard.visits.sum()) == 0 and int(guard.yaw[0]) == 0 and int(guard.last_move[0]) == -1
+    with pytest.raises(ValueError, match="revisit penalty"):
+        RevisitPenalty(1, 0.0)
+    with pytest.raises(ValueError, match="step_deg"):
+        RevisitPenalty(1, 1.0, step_deg=7)
+
+
+def test_ppo_agent_refuses_a_negative_penalty():
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.rl.policy import Policy
+
+    with pytest.raises(ValueError, match="revisit_penalty"):
+        PPOAgent(Policy(64, 64, "early_fusion", hidden_size=8), 1, revisit_penalty=-1.0)
