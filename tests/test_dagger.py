@@ -363,7 +363,7 @@ def test_search_weight_marks_exactly_the_no_overlap_steps(panoramas) -> None:
     assert trainer.buffer.state_dict()["weights"].shape == (n, 8)
 
 
-def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True):
+def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True, revisit_penalty: float = 0.0):
     """A small DAgger run (correlation policy, aux loss on, set labels, tiny FIFO buffer that wraps, curriculum);
     resumes from ``state`` when given."""
     torch.manual_seed(0)
@@ -376,7 +376,7 @@ def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True
     )
     levels: list[int] = []
     trainer = DAggerTrainer(env, policy, cfg, total_updates=6, scheduler=DifficultyScheduler(6), set_level=lambda k: (
-        levels.append(k), setattr(env.source, "level", k)))
+        levels.append(k), setattr(env.source, "level", k)), revisit_penalty=revisit_penalty)
     if state is None:
         trainer.start()
     else:
@@ -386,11 +386,13 @@ def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True
     return trainer, levels
 
 
-def test_exact_resume_half_plus_half_equals_one_run(panoramas) -> None:
-    """6 updates in one go == 3 updates, an abandoned 4th (stop request), save, load, 3 more."""
-    straight, levels = dagger_run(panoramas, 6)
+@pytest.mark.parametrize("revisit_penalty", [0.0, 2.0])
+def test_exact_resume_half_plus_half_equals_one_run(panoramas, revisit_penalty) -> None:
+    """6 updates in one go == 3 updates, an abandoned 4th (stop request), save, load, 3 more; also when the
+    learner acts with its search memory (whose visit counts are part of the resume state)."""
+    straight, levels = dagger_run(panoramas, 6, revisit_penalty=revisit_penalty)
     assert levels == [1, 2, 3]
-    first, _ = dagger_run(panoramas, 3)
+    first, _ = dagger_run(panoramas, 3, revisit_penalty=revisit_penalty)
     calls = iter(range(100))
     with pytest.raises(UpdateAbandoned):  # a stop request in the middle of the 4th rollout
         first.train_update(should_stop=lambda: next(calls) >= 5)
@@ -398,7 +400,10 @@ def test_exact_resume_half_plus_half_equals_one_run(panoramas) -> None:
     torch.save(first.state_dict(), blob)
     blob.seek(0)
     state = torch.load(blob, weights_only=True)
-    resumed, _ = dagger_run(panoramas, 3, state=state)
+    resumed, _ = dagger_run(panoramas, 3, state=state, revisit_penalty=revisit_penalty)
+    if revisit_penalty:
+        assert int(straight.revisits.visits.sum()) > 0
+        assert torch.equal(straight.revisits.visits, resumed.revisits.visits)
     assert resumed.update == straight.update == 6 and resumed.env_steps == straight.env_steps
     for (name, a), b in zip(straight.policy.state_dict().items(), resumed.policy.state_dict().values()):
         assert torch.equal(a, b), name

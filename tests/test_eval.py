@@ -463,3 +463,14 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy
+
+
+def test_a_missing_checkpoint_next_to_a_model_card_points_to_the_card(tmp_path):
+    from findview_baselines.rl.checkpoint import load_checkpoint
+
+    with pytest.raises(FileNotFoundError, match="checkpoint not found") as plain:
+        load_checkpoint(tmp_path / "agent.pth")
+    assert "README" not in str(plain.value)
+    (tmp_path / "README.md").write_text("# model card\n")
+    with pytest.raises(FileNotFoundError, match=r"agent\.pth.*README\.md says how to make it"):
+        load_checkpoint(tmp_path / "agent.pth")

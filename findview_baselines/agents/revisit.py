@@ -15,7 +15,8 @@ of every offset. Before the argmax, each move's logit is lowered by ``penalty x 
 
 A move that leaves the view unchanged (``UP`` / ``DOWN`` against the simulator's pitch limit) does not
 move the dead-reckoned pose, and the cell it aimed at gains a visit, so pressing into the limit loses its
-appeal like a loop does.
+appeal like a loop does. (A move in a textureless region can leave a small view unchanged too; it is then
+taken for a blocked one, so the dead reckoning is approximate there, where the view cannot tell poses apart.)
 
 Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at 1 degree) on the policy's device; every
 operation is batched over the slots (no Python loop over environments).
@@ -24,6 +25,8 @@ operation is batched over the slots (no Python loop over environments).
 from __future__ import annotations
 
 import torch
+
+from typing import Any
 
 __all__ = ["RevisitPenalty"]
 
@@ -127,3 +130,28 @@ class RevisitPenalty:
         self.yaw[idx] = (self.yaw[idx] + step[:, 1]) % self.yaw_cells
         self.last_move[idx] = -1
         self.last_view[idx] = view
+
+    # resume state (DAgger rollouts that act with the penalty resume exactly) -------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Counts, poses, pending moves and last views as CPU tensors (``weights_only=True`` loads them)."""
+        return {
+            "visits": self.visits.cpu().clone(),
+            "pitch": self.pitch.cpu().clone(),
+            "yaw": self.yaw.cpu().clone(),
+            "last_move": self.last_move.cpu().clone(),
+            "last_view": None if self.last_view is None else self.last_view.cpu().clone(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`; raises ``ValueError`` if it was saved for another number of slots or grid."""
+        if tuple(state["visits"].shape) != tuple(self.visits.shape):
+            raise ValueError(
+                f"revisit state holds visit counts of shape {tuple(state['visits'].shape)}, this agent needs "
+                f"{tuple(self.visits.shape)} (slots, pitch cells, yaw cells)"
+            )
+        self.visits.copy_(state["visits"])
+        self.pitch.copy_(state["pitch"])
+        self.yaw.copy_(state["yaw"])
+        self.last_move.copy_(state["last_move"])
+        last = state.get("last_view")
+        self.last_view = None if last is None else last.to(self.device).clone()

@@ -71,7 +71,9 @@ def load_checkpoint(path: str | os.PathLike, map_location: torch.device | str | 
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
+        card = path.parent / "README.md"
+        hint = f" ({card} says how to make it: weights files are not kept in git)" if card.is_file() else ""
+        raise FileNotFoundError(f"checkpoint not found: {path}{hint}")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # unpickling error, truncated file, foreign pickle, ...

@@ -62,6 +62,7 @@ from findview.task.oracle import (
     overlap_mask,
     rotation_labels,
 )
+from findview_baselines.agents.revisit import RevisitPenalty
 from findview_baselines.rl import distributed
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
 from findview_baselines.rl.policy import NUM_ACTIONS, AuxHead, Policy, aux_loss, check_signature
@@ -390,6 +391,7 @@ class DAggerTrainer:
         scheduler: DifficultyScheduler | None = None,
         set_level: Callable[[int], None] | None = None,
         seed: int = 0,
+        revisit_penalty: float = 0.0,
     ) -> None:
         self.env = env
         self.policy = policy
@@ -422,6 +424,8 @@ class DAggerTrainer:
         self.env_steps = 0
         self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
         self._before_update: dict[str, Any] | None = None  # resume parts while a rollout runs
+        # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
+        self.revisits = RevisitPenalty(n, revisit_penalty, dev) if revisit_penalty > 0 else None
 
     # ---------------------------------------------------------------------------------------------
 
@@ -487,14 +491,19 @@ class DAggerTrainer:
                 aux[t].copy_(rotation_labels(env).to(dev))
             t0 = time.perf_counter()
             obs = {"view": self.view, "target": self.target}
-            learner, _, _, new_hidden = self.policy.act(
-                obs, self.hidden, self.masks, deterministic=not cfg.sample_actions
-            )
+            if self.revisits is None:
+                learner, _, _, new_hidden = self.policy.act(
+                    obs, self.hidden, self.masks, deterministic=not cfg.sample_actions
+                )
+            else:
+                learner, new_hidden = self._act_with_revisits(obs)
             t1 = time.perf_counter()
             use_oracle = torch.rand(n, generator=self.mix_generator) < beta
             executed_oracle += int(use_oracle.sum())
             agree += label.gather(1, learner[:, None]).sum()
             actions = torch.where(use_oracle.to(dev), oracle, learner)
+            if self.revisits is not None:
+                self.revisits.moved(self._all_slots, actions)  # what was executed, oracle or learner
             next_obs, rewards, done, infos = env.step(actions)
             t2 = time.perf_counter()
             t_forward += t1 - t0
@@ -522,6 +531,19 @@ class DAggerTrainer:
         self.timings["rollout_other"] += total - t_forward - t_env
         stats = {"oracle_share": executed_oracle / (T * n), "rollout_agreement": float(agree) / (T * n)}
         return records, stats
+
+    def _act_with_revisits(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The learner's actions under its search memory (as ``PPOAgent`` acts at evaluation) and new GRU state."""
+        assert self.revisits is not None
+        self._all_slots = torch.arange(self.env.num_envs, device=self.device)
+        starts = torch.nonzero(self.masks == 0).flatten()
+        if len(starts):
+            self.revisits.reset(starts)
+        dist, _, new_hidden = self.policy(obs, self.hidden, self.masks)
+        logits = self.revisits.adjust(self._all_slots, obs["view"], dist.logits)
+        if self.cfg.sample_actions:
+            return torch.distributions.Categorical(logits=logits).sample(), new_hidden
+        return logits.argmax(dim=-1), new_hidden
 
     def _train(self, new_chunks: int) -> dict[str, float]:
         """Gradient steps on the buffer; mean stats over them."""
@@ -644,6 +666,7 @@ class DAggerTrainer:
             "episode_returns": self.episode_returns.cpu().clone(),
             "mix_rng": self.mix_generator.get_state(),
             "rng": capture_rng_state(),
+            "revisits": self.revisits.state_dict() if self.revisits is not None else None,
         }
 
     def state_dict(self) -> dict[str, Any]:
@@ -697,6 +720,8 @@ class DAggerTrainer:
             self.episode_returns.copy_(state["episode_returns"])
         self.mix_generator.set_state(state["mix_rng"])
         self.sample_generator.set_state(state["sample_rng"])
+        if self.revisits is not None and state.get("revisits") is not None:
+            self.revisits.load_state_dict(state["revisits"])
         if state.get("buffer") is not None:
             self.buffer.load_state_dict(state["buffer"])
         if restore_rng and state.get("rng") is not None:

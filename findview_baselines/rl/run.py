@@ -497,7 +497,8 @@ def make_algorithm(conf: Mapping[str, Any], env: Any, policy: Policy, scheduler:
         from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer
 
         dcfg = DAggerConfig.from_mapping(dict(t.get("dagger") or {}))
-        return DAggerTrainer(env, policy, dcfg, int(t["num_updates"]), scheduler, set_level, seed=seed)
+        return DAggerTrainer(env, policy, dcfg, int(t["num_updates"]), scheduler, set_level, seed=seed,
+                             revisit_penalty=float(agent.get("revisit_penalty", 0.0) or 0.0))
     from findview_baselines.rl.ppo import PPOConfig
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
