@@ -515,3 +515,24 @@ def test_ppo_aux_loss_is_wired_and_saved() -> None:
     assert plain.aux_head is None and "aux_head" not in plain.state_dict()
     with pytest.raises(ValueError, match="aux_coef"):
         PPO(policy, PPOConfig(aux_coef=-1.0))
+
+
+def test_critic_warmup_moves_only_the_critic_then_everything() -> None:
+    torch.manual_seed(0)
+    policy = Policy(SIZE, SIZE, hidden_size=16)
+    cfg = PPOConfig(lr=1e-3, ppo_epochs=2, critic_warmup_updates=1)
+    ppo = PPO(policy, cfg)
+    storage = filled_storage(policy, T=4, N=2, action=3, reward=1.0)
+    storage.compute_returns(torch.zeros(2), cfg.gamma, cfg.gae_lambda)
+    start = {k: v.clone() for k, v in policy.state_dict().items()}
+    ppo.set_progress(0, 10)
+    stats = ppo.update(storage, torch.Generator().manual_seed(0))
+    assert stats["critic_warmup"] == 1.0
+    changed = {k for k, v in policy.state_dict().items() if not torch.equal(v, start[k])}
+    assert changed == {"critic.weight", "critic.bias"}
+    ppo.set_progress(1, 10)  # warm-up over: the actor learns too
+    stats = ppo.update(storage, torch.Generator().manual_seed(0))
+    assert stats["critic_warmup"] == 0.0
+    assert not torch.equal(policy.state_dict()["actor.weight"], start["actor.weight"])
+    with pytest.raises(ValueError, match="critic_warmup_updates"):
+        PPO(policy, PPOConfig(critic_warmup_updates=-1))

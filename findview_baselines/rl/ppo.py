@@ -70,6 +70,11 @@ class PPOConfig:
     aux_coef: float = 0.0
     """Weight of the auxiliary loss (relative rotation regression + overlap classification); 0 = off (the
     paper's recipe)."""
+    critic_warmup_updates: int = 0
+    """For this many first updates of a run only the critic's output layer learns (the actor, the GRU and the
+    encoder are frozen): a fine-tuning run (``init_from`` an imitation checkpoint) then starts its policy
+    updates with a value function fitted to the inherited policy instead of advantages from a random critic.
+    0 = off."""
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "PPOConfig":
@@ -156,9 +161,15 @@ class PPO:
         self.optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps)
         self.lr = cfg.lr
         self.clip = cfg.clip
+        self.progress_update = 0  # the update being made (set_progress), for the critic warm-up
+        if cfg.critic_warmup_updates < 0:
+            raise ValueError(f"agent.critic_warmup_updates must be >= 0, got {cfg.critic_warmup_updates}")
+        critic = {id(p) for p in policy.critic.parameters()}
+        self.frozen_in_warmup = [p for p in params if id(p) not in critic]
 
     def set_progress(self, update: int, total_updates: int) -> None:
         """Set lr and clip for update ``update`` out of ``total_updates`` (constant if linear_decay is off)."""
+        self.progress_update = int(update)
         if self.cfg.linear_decay:
             self.lr = linear_decay(self.cfg.lr, update, total_updates)
             self.clip = linear_decay(self.cfg.clip, update, total_updates)
@@ -192,6 +203,7 @@ class PPO:
             )
         totals: dict[str, float] = {}
         num_batches = 0
+        warmup = self.progress_update < cfg.critic_warmup_updates  # only the critic learns
         self.policy.train()
         for _ in range(cfg.ppo_epochs):
             for batch in storage.recurrent_minibatches(advantages, cfg.num_mini_batches, generator):
@@ -224,6 +236,9 @@ class PPO:
                 self.optimizer.zero_grad(set_to_none=True)
                 terms["loss"].backward()
                 distributed.allreduce_gradients(self.params)  # average over ranks, before clipping
+                if warmup:
+                    for p in self.frozen_in_warmup:
+                        p.grad = None  # Adam skips parameters without a gradient
                 grad_norm = nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 # one host sync per mini-batch, before the weights change. Distributed: a non-finite local
                 # loss shows as a non-finite averaged gradient norm on every rank, so all ranks fail together
@@ -248,6 +263,7 @@ class PPO:
         stats = {name: value / num_batches for name, value in zip(names, values)}
         stats["lr"] = self.lr
         stats["clip"] = self.clip
+        stats["critic_warmup"] = float(warmup)
         return stats
 
     # ---------------------------------------------------------------------------------------------
