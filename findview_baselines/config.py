@@ -244,6 +244,7 @@ class PPOAgentConfig(PPOConfig):
         check(self.num_mini_batches >= 1, "agent.num_mini_batches", self.num_mini_batches, "a positive integer")
         check(0 < self.gamma <= 1, "agent.gamma", self.gamma, "a discount in (0, 1]")
         check(self.aux_coef >= 0, "agent.aux_coef", self.aux_coef, "0 (off) or a positive weight")
+        check(self.kl_to_init_coef >= 0, "agent.kl_to_init_coef", self.kl_to_init_coef, "0 (off) or a positive weight")
         check(self.critic_warmup_updates >= 0, "agent.critic_warmup_updates", self.critic_warmup_updates, "0 (off) or a number of updates")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
 

@@ -536,3 +536,32 @@ def test_critic_warmup_moves_only_the_critic_then_everything() -> None:
     assert not torch.equal(policy.state_dict()["actor.weight"], start["actor.weight"])
     with pytest.raises(ValueError, match="critic_warmup_updates"):
         PPO(policy, PPOConfig(critic_warmup_updates=-1))
+
+
+def test_kl_to_init_holds_the_policy_near_where_it_started_and_resumes() -> None:
+    def drift(coef: float) -> tuple[float, PPO, Policy]:
+        torch.manual_seed(0)
+        policy = Policy(SIZE, SIZE, hidden_size=16)
+        cfg = PPOConfig(lr=3e-3, ppo_epochs=4, entropy_coef=0.0, normalize_advantage=False, kl_to_init_coef=coef)
+        ppo = PPO(policy, cfg)
+        storage = filled_storage(policy, T=4, N=2, action=3, reward=1.0)
+        storage.compute_returns(torch.zeros(2), cfg.gamma, cfg.gae_lambda)
+        before = mean_log_prob(policy, storage)
+        for update in range(3):
+            ppo.set_progress(update, 100)
+            stats = ppo.update(storage, torch.Generator().manual_seed(update))
+        assert (coef > 0) == ("kl_to_init" in stats)
+        return mean_log_prob(policy, storage) - before, ppo, policy
+
+    free, _, _ = drift(0.0)
+    held, ppo, policy = drift(50.0)
+    assert free > 0 and 0 < held < 0.5 * free  # both learn the rewarded action; the KL term slows the drift
+    # the anchor is the starting policy, not the current one, and a resumed run gets it back
+    assert not torch.equal(ppo.init_policy.actor.weight, policy.actor.weight)
+    assert all(not p.requires_grad for p in ppo.init_policy.parameters())
+    other = PPO(Policy(SIZE, SIZE, hidden_size=16), ppo.cfg)
+    other.load_state_dict(ppo.state_dict())
+    for a, b in zip(ppo.init_policy.state_dict().values(), other.init_policy.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="kl_to_init_coef"):
+        PPO(policy, PPOConfig(kl_to_init_coef=-1.0))

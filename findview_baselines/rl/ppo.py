@@ -8,6 +8,8 @@ advantages ``A``::
     value_loss  = 0.5 * mean(max((v - R)^2, (v_clipped - R)^2))     (0.5 * mean((v - R)^2) if not clipped)
     loss        = policy_loss + value_coef * value_loss - entropy_coef * mean(entropy)
                   (+ aux_coef * aux_loss when ``aux_coef > 0``: see ``policy.aux_loss``)
+                  (+ kl_to_init_coef * KL(pi_init || pi) when ``kl_to_init_coef > 0``: the frozen starting policy
+                   pi_init runs on the same chunks from the same initial GRU state)
 
 With ``aux_coef > 0`` an :class:`~findview_baselines.rl.policy.AuxHead` on the policy's pre-GRU features
 is trained alongside (it belongs to :class:`PPO`, is saved in its ``state_dict`` and never in the policy
@@ -16,6 +18,7 @@ weights); every rollout must then be stored with ``aux_targets=rotation_labels(e
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, fields
 from typing import Any, Mapping
 
@@ -70,6 +73,10 @@ class PPOConfig:
     aux_coef: float = 0.0
     """Weight of the auxiliary loss (relative rotation regression + overlap classification); 0 = off (the
     paper's recipe)."""
+    kl_to_init_coef: float = 0.0
+    """Weight of ``KL(pi_init || pi)`` on the rollout's states, where ``pi_init`` is a frozen copy of the policy
+    as the run's first update found it (the ``init_from`` imitation policy): keeps fine-tuning near the policy
+    it starts from. 0 = off (the paper's recipe)."""
     critic_warmup_updates: int = 0
     """For this many first updates of a run only the critic's output layer learns (the actor, the GRU and the
     encoder are frozen): a fine-tuning run (``init_from`` an imitation checkpoint) then starts its policy
@@ -166,6 +173,18 @@ class PPO:
             raise ValueError(f"agent.critic_warmup_updates must be >= 0, got {cfg.critic_warmup_updates}")
         critic = {id(p) for p in policy.critic.parameters()}
         self.frozen_in_warmup = [p for p in params if id(p) not in critic]
+        if cfg.kl_to_init_coef < 0:
+            raise ValueError(f"agent.kl_to_init_coef must be >= 0, got {cfg.kl_to_init_coef}")
+        self.init_policy: Policy | None = None  # frozen copy, made at the first update (after init_from)
+
+    def _frozen_copy(self, state: Mapping[str, torch.Tensor] | None = None) -> Policy:
+        anchor = copy.deepcopy(self.policy)
+        if state is not None:
+            anchor.load_state_dict(state)
+        anchor.eval()
+        for p in anchor.parameters():
+            p.requires_grad_(False)
+        return anchor
 
     def set_progress(self, update: int, total_updates: int) -> None:
         """Set lr and clip for update ``update`` out of ``total_updates`` (constant if linear_decay is off)."""
@@ -204,19 +223,28 @@ class PPO:
         totals: dict[str, float] = {}
         num_batches = 0
         warmup = self.progress_update < cfg.critic_warmup_updates  # only the critic learns
+        if cfg.kl_to_init_coef > 0 and self.init_policy is None:
+            self.init_policy = self._frozen_copy()
         self.policy.train()
         for _ in range(cfg.ppo_epochs):
             for batch in storage.recurrent_minibatches(advantages, cfg.num_mini_batches, generator):
                 aux_terms: dict[str, torch.Tensor] | None = None
-                if self.aux_head is None:
+                kl_init: torch.Tensor | None = None
+                if self.aux_head is None and self.init_policy is None:
                     log_probs, values, entropy = self.policy.evaluate_actions(
                         batch.obs, batch.hidden0, batch.masks, batch.actions
                     )
                 else:
                     dist, values, _, features = self.policy.forward_features(batch.obs, batch.hidden0, batch.masks)
                     log_probs, entropy = dist.log_prob(batch.actions), dist.entropy()
-                    assert batch.aux_targets is not None
-                    aux_terms = aux_loss(self.aux_head(features), batch.aux_targets)
+                    if self.aux_head is not None:
+                        assert batch.aux_targets is not None
+                        aux_terms = aux_loss(self.aux_head(features), batch.aux_targets)
+                    if self.init_policy is not None:
+                        with torch.no_grad():
+                            init_dist = self.init_policy.forward_features(batch.obs, batch.hidden0, batch.masks)[0]
+                        p0 = init_dist.probs
+                        kl_init = (p0 * (init_dist.logits - dist.logits)).sum(dim=-1).mean()
                 terms = ppo_loss(
                     log_probs,
                     batch.old_log_probs,
@@ -233,6 +261,9 @@ class PPO:
                 if aux_terms is not None:
                     terms["loss"] = terms["loss"] + cfg.aux_coef * aux_terms["loss"]
                     terms["aux_loss"] = aux_terms["loss"]
+                if kl_init is not None:
+                    terms["loss"] = terms["loss"] + cfg.kl_to_init_coef * kl_init
+                    terms["kl_to_init"] = kl_init
                 self.optimizer.zero_grad(set_to_none=True)
                 terms["loss"].backward()
                 distributed.allreduce_gradients(self.params)  # average over ranks, before clipping
@@ -253,6 +284,8 @@ class PPO:
                 for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"):
                     totals[name] = totals.get(name, 0.0) + terms[name].detach()
                 totals["grad_norm"] = totals.get("grad_norm", 0.0) + grad_norm.detach()
+                if kl_init is not None:
+                    totals["kl_to_init"] = totals.get("kl_to_init", 0.0) + kl_init.detach()
                 if aux_terms is not None:
                     for name in ("loss", "rotation_loss", "overlap_accuracy"):
                         totals[f"aux_{name}"] = totals.get(f"aux_{name}", 0.0) + aux_terms[name].detach()
@@ -274,6 +307,8 @@ class PPO:
         state: dict[str, Any] = {"optimizer": self.optimizer.state_dict(), "lr": self.lr, "clip": self.clip}
         if self.aux_head is not None:
             state["aux_head"] = self.aux_head.state_dict()
+        if self.init_policy is not None:
+            state["init_policy"] = self.init_policy.state_dict()
         return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -285,5 +320,7 @@ class PPO:
             self.aux_head.load_state_dict(state["aux_head"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.lr, self.clip = state["lr"], state["clip"]
+        if self.cfg.kl_to_init_coef > 0 and state.get("init_policy") is not None:
+            self.init_policy = self._frozen_copy(state["init_policy"])  # the policy the run started from
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr
