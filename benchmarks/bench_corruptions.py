@@ -19,7 +19,7 @@ per-image time averaged over severities 1-5 (ours: one batched call of ``--batch
 severity; reference: the images one by one, stopping after ``--ref-budget`` seconds per severity
 with at least 2 images, which only matters for glass blur), best of ``--repeats``. Without
 ``--reference-python`` only our column is printed. Images: central crops of the panoramas in
-``../shared/data/sun360_mini`` (``--data``), else smooth random images.
+``$FINDVIEW_SUN360_MINI`` (or ``--data``), else smooth random images.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ import torch
 from findview.corruptions import NAMES, corrupt
 from findview.runtime import configure_threads
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sun360_mini"
+DEFAULT_DATA = Path(os.environ.get("FINDVIEW_SUN360_MINI", "") or "/nonexistent")  # a folder of SUN360 panoramas
 
 WORKER = r'''
 import json, sys, time, warnings

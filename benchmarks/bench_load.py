@@ -23,7 +23,7 @@ alternate ``--rounds`` times and the median of each is reported. ``slowdown = lo
 time``; the last column divides it by the ``control`` path's (1.00: the path loses its fair share of
 the CPU and nothing more). Competing thread by thread, a single-threaded path sharing 2 cores with 2
 busy processes gets 2/3 of a core, so 1.5x is the floor on an otherwise idle machine; the goal is no
-path above 2x. Panoramas: the SUN360 images of ``../shared/data/sun360_mini`` (or
+path above 2x. Panoramas: the SUN360 images of ``$FINDVIEW_SUN360_MINI`` (or
 ``$FINDVIEW_SUN360_MINI``), else procedural ones.
 """
 
@@ -48,7 +48,7 @@ AGENTS = ("random", "orb", "sift", "rotation")
 
 def panorama_files(tmp: Path, n: int = 16) -> list[str]:
     """sun360_mini panoramas if present, else ``n`` procedural 1024x512 ones written to ``tmp``."""
-    mini = Path(os.environ.get("FINDVIEW_SUN360_MINI", REPO.parent / "shared" / "data" / "sun360_mini"))
+    mini = Path(os.environ.get("FINDVIEW_SUN360_MINI", "") or "/nonexistent")  # the sun360_mini folder, if you have it
     files = sorted(mini.rglob("*.jpg")) if mini.is_dir() else []
     if files:
         return [str(f) for f in files]

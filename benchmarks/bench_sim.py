@@ -3,13 +3,14 @@
     python benchmarks/bench_sim.py [--threads 2] [--iters 20] [--cuda-batch 1024]
 
 Needs ``pip install 'findview[bench]'`` (pyequilib 0.5.8, the renderer the authors used) for the
-reference column; real panoramas from ``../shared/data/sun360_mini`` (or ``--data``).
+reference column; real panoramas from ``$FINDVIEW_SUN360_MINI`` (or ``--data``).
 Prints ms per view and ratios; figures go to benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import math
 import time
 from pathlib import Path
@@ -23,7 +24,7 @@ from findview.imageio import load_panorama
 from findview.sim import PanoramaBank, Simulator, equi2pers
 from findview.build import build_static_env
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sun360_mini"
+DEFAULT_DATA = Path(os.environ.get("FINDVIEW_SUN360_MINI", "") or "/nonexistent")  # a folder of SUN360 panoramas
 
 
 def timeit(fn, iters: int) -> float:

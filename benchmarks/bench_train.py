@@ -15,7 +15,7 @@ Phases (seconds per update, from ``PPOTrainer.timings``):
 - ``update``: GAE + 4 PPO epochs (forward + backward + Adam).
 
 ``non-net`` = (env + other) / total: the share of time outside the network's forward / backward
-(target < 25%). Panoramas: the 36 SUN360 images of ``../shared/data/sun360_mini`` (or
+(target < 25%). Panoramas: the SUN360 images of ``$FINDVIEW_SUN360_MINI`` (or
 ``$FINDVIEW_SUN360_MINI``) when present, else 8 procedural 1024x512 panoramas made on the fly.
 """
 
@@ -68,7 +68,7 @@ class Result:
 
 def find_panoramas(tmp: Path) -> list[ImageEntry]:
     """sun360_mini if available, else a few procedural panoramas written to ``tmp``."""
-    mini = Path(os.environ.get("FINDVIEW_SUN360_MINI", REPO.parent / "shared" / "data" / "sun360_mini"))
+    mini = Path(os.environ.get("FINDVIEW_SUN360_MINI", "") or "/nonexistent")  # the sun360_mini folder, if you have it
     files = sorted(mini.rglob("*.jpg")) if mini.is_dir() else []
     if files:
         return [ImageEntry(str(f), f.parent.name) for f in files]

@@ -5,7 +5,7 @@
 # (and the same for outdoor). Then: python benchmarks/agent_tables.py outputs/bench
 cd "$(dirname "$0")/.."
 PY=${PY:-python}
-MINI=${MINI:-../shared/data/sun360_mini}
+MINI=${MINI:-${FINDVIEW_SUN360_MINI:?set FINDVIEW_SUN360_MINI (or MINI) to the folder of the sun360_mini panoramas}}
 for sub in indoor outdoor; do
  for sim in fov90 fov60; do
   for agent in random oracle orb sift rotation; do
