@@ -426,6 +426,7 @@ class DAggerTrainer:
         self._before_update: dict[str, Any] | None = None  # resume parts while a rollout runs
         # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
         self.revisits = RevisitPenalty(n, revisit_penalty, dev) if revisit_penalty > 0 else None
+        self._all_slots = torch.arange(n, device=dev)
 
     # ---------------------------------------------------------------------------------------------
 
@@ -535,7 +536,6 @@ class DAggerTrainer:
     def _act_with_revisits(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """The learner's actions under its search memory (as ``PPOAgent`` acts at evaluation) and new GRU state."""
         assert self.revisits is not None
-        self._all_slots = torch.arange(self.env.num_envs, device=self.device)
         starts = torch.nonzero(self.masks == 0).flatten()
         if len(starts):
             self.revisits.reset(starts)
