@@ -217,6 +217,9 @@ class PPOAgentConfig(PPOConfig):
     """Search memory at validation / evaluation time: logit units subtracted from a move per earlier visit
     of the pose it leads to (poses dead-reckoned from the agent's own moves; breaks left/right loops). 0 = off,
     the plain policy. See findview_baselines/agents/revisit.py."""
+    revisit_row_stride: int = 0
+    """With the search memory on: once the agent has looked around a full turn near its row, it moves to the next
+    search row, this many 1-step moves above / below its start (alternately: +s, -s, +2s, -2s, ...). 0 = off."""
     precision: str = "fp32"
     """Encoder compute dtype while training: fp32 | bf16 (torch.autocast on the policy's device, CPU or
     CUDA; the GRU, the heads and the weights stay float32, so checkpoints do not depend on it)."""
@@ -246,6 +249,7 @@ class PPOAgentConfig(PPOConfig):
         check(self.aux_coef >= 0, "agent.aux_coef", self.aux_coef, "0 (off) or a positive weight")
         check(self.kl_to_init_coef >= 0, "agent.kl_to_init_coef", self.kl_to_init_coef, "0 (off) or a positive weight")
         check(self.critic_warmup_updates >= 0, "agent.critic_warmup_updates", self.critic_warmup_updates, "0 (off) or a number of updates")
+        check(self.revisit_row_stride >= 0, "agent.revisit_row_stride", self.revisit_row_stride, "0 (off) or a number of steps")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
 
 

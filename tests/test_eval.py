@@ -448,7 +448,7 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     from findview_baselines.evaluation.evaluate import apply_checkpoint_config, build_agent
 
     state = torch.load(tiny_ckpt, weights_only=True)
-    state["config"] = {"agent": {"revisit_penalty": 1.5}, "sim": {"fov": 90.0}}
+    state["config"] = {"agent": {"revisit_penalty": 1.5, "revisit_row_stride": 30}, "sim": {"fov": 90.0}}
     ckpt = tmp_path / "with_run_config.pth"
     torch.save(state, ckpt)
 
@@ -460,6 +460,11 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
         return build_agent(cfg, 2, torch.device("cpu"))[0]
 
     assert agent_for(ckpt, [], None).revisits.penalty == 1.5  # the training run's setting
+    assert agent_for(ckpt, [], None).revisits.row_stride == 30
+    cfg = OmegaConf.create({"agent": {"name": "ppo", "revisit_row_stride": 45}, "checkpoint": str(ckpt), "seed": 0,
+                            "sim": {"height": 256, "width": 256, "fov": 90.0}})
+    apply_checkpoint_config(cfg, ["agent.revisit_row_stride=45"])
+    assert build_agent(cfg, 2, torch.device("cpu"))[0].revisits.row_stride == 45  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy

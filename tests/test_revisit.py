@@ -136,3 +136,42 @@ def test_ppo_agent_refuses_a_negative_penalty():
 
     with pytest.raises(ValueError, match="revisit_penalty"):
         PPOAgent(Policy(64, 64, "early_fusion", hidden_size=8), 1, revisit_penalty=-1.0)
+
+
+def row_walk(steps: int, pitch_limit: int) -> tuple[list[int], RevisitPenalty]:
+    """An agent that always prefers RIGHT, on a 30-degree grid (12 yaw cells), memory penalty 1, row search with
+    stride 5 steps (rows +5, -5, then +10, beyond the 6-step pitch range: the search ends)."""
+    guard = RevisitPenalty(1, 1.0, step_deg=30, row_stride=5)
+    assert guard.yaw_cells == 12 and guard.cover_cells == 11 and guard.max_pitch == 6
+    idx, pitch, yaw, actions = torch.tensor([0]), 0, 0, []
+    for _ in range(steps):
+        out = guard.adjust(idx, pose_view(pitch, yaw)[None], torch.tensor([[0.0, 0.0, -5.0, 5.0, -9.0]]))
+        a = int(out.argmax(dim=-1))
+        guard.moved(idx, torch.tensor([a]))
+        actions.append(a)
+        if a == UP:
+            pitch = min(pitch + 1, pitch_limit)
+        elif a == DOWN:
+            pitch = max(pitch - 1, -pitch_limit)
+        else:
+            yaw += 1 if a == RIGHT else -1 if a == LEFT else 0
+    return actions, guard
+
+
+def test_row_search_moves_to_the_next_rows_after_a_turn():
+    # 11 of 12 yaw cells seen (the 11th arrival, step 10): 5 forced UPs to row +5; there the band of rows 3..7 holds
+    # the transit column only, so 10 more RIGHTs fill it to 11 cells; then 10 DOWNs to row -5 and 10 RIGHTs again;
+    # the next row (+10) is out of range, so the search ends and the policy (with its memory) acts freely
+    actions, guard = row_walk(46, pitch_limit=90)
+    assert actions[:45] == [RIGHT] * 10 + [UP] * 5 + [RIGHT] * 10 + [DOWN] * 10 + [RIGHT] * 10
+    assert int(guard.row_k[0]) == 3 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -5
+
+
+def test_row_search_skips_a_row_beyond_the_pitch_limit():
+    # the simulator stops the pitch at +-3: the 4th forced UP leaves the view unchanged, so the agent turns to
+    # row -5; the 7th DOWN is blocked at -3 too, and the row after (+10) is out of range: the search ends
+    actions, guard = row_walk(30, pitch_limit=3)
+    assert actions[:10] == [RIGHT] * 10
+    assert actions[10:14] == [UP] * 4
+    assert actions[14:21] == [DOWN] * 7 and actions[21] == RIGHT
+    assert int(guard.row_k[0]) == 3 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -3

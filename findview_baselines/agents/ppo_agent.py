@@ -56,11 +56,13 @@ class PPOAgent(Agent):
         sample: draw actions from the policy instead of taking the argmax.
         revisit_penalty: logit units subtracted from a move per earlier visit of its destination pose
             (0: off; see :mod:`findview_baselines.agents.revisit`).
+        revisit_row_stride: with the memory on, after a turn move to the next search row this many 1-step
+            moves up or down (alternately, growing); 0: off.
     """
 
     name = "ppo"
     #: keys of configs/agent/ppo.yaml used here; every other key (training hyper-parameters) is ignored
-    CONFIG_KEYS = ("checkpoint", "sample", "height", "width", "revisit_penalty")
+    CONFIG_KEYS = ("checkpoint", "sample", "height", "width", "revisit_penalty", "revisit_row_stride")
 
     def __init__(
         self,
@@ -70,6 +72,7 @@ class PPOAgent(Agent):
         seed: int = 0,
         sample: bool = False,
         revisit_penalty: float = 0.0,
+        revisit_row_stride: int = 0,
     ) -> None:
         super().__init__(num_envs, device, seed)
         self.policy = policy.to(self.device).eval()
@@ -81,7 +84,9 @@ class PPOAgent(Agent):
         penalty = float(revisit_penalty)
         if penalty < 0 or penalty != penalty:
             raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
-        self.revisits = RevisitPenalty(self.num_envs, penalty, self.device) if penalty > 0 else None
+        self.revisits = (
+            RevisitPenalty(self.num_envs, penalty, self.device, row_stride=int(revisit_row_stride)) if penalty > 0 else None
+        )
 
     # construction --------------------------------------------------------------------------------
     @classmethod
@@ -95,6 +100,7 @@ class PPOAgent(Agent):
         height: int | None = None,
         width: int | None = None,
         revisit_penalty: float = 0.0,
+        revisit_row_stride: int = 0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -125,7 +131,7 @@ class PPOAgent(Agent):
             policy.load_state_dict(state["policy"])
         except RuntimeError as err:
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
-        return cls(policy, num_envs, device, seed, sample, revisit_penalty)
+        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride)
 
     @classmethod
     def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "PPOAgent":
@@ -138,7 +144,7 @@ class PPOAgent(Agent):
         sample = bool(c.get("sample", False))
         return cls.from_checkpoint(
             c["checkpoint"], num_envs, device, seed, bool(sample), height=c.get("height"), width=c.get("width"),
-            revisit_penalty=float(c.get("revisit_penalty") or 0.0),
+            revisit_penalty=float(c.get("revisit_penalty") or 0.0), revisit_row_stride=int(c.get("revisit_row_stride") or 0),
         )
 
     # acting --------------------------------------------------------------------------------------

@@ -48,10 +48,12 @@ class RevisitPenalty:
 
     def __init__(
         self, num_envs: int, penalty: float, device: str | torch.device = "cpu", step_deg: int = 1,
-        max_pitch_steps: int | None = None,
+        max_pitch_steps: int | None = None, row_stride: int = 0, row_cover: float = 0.9,
     ) -> None:
         if not penalty > 0:
             raise ValueError(f"revisit penalty must be > 0 logit units per visit, got {penalty}")
+        if int(row_stride) < 0 or not 0.0 < float(row_cover) <= 1.0:
+            raise ValueError(f"row search: need row_stride >= 0 steps and 0 < row_cover <= 1, got {row_stride}, {row_cover}")
         if int(step_deg) < 1 or 360 % int(step_deg):
             raise ValueError(f"step_deg must be a positive divisor of 360, got {step_deg}")
         self.penalty = float(penalty)
@@ -65,6 +67,13 @@ class RevisitPenalty:
         self.last_move = torch.full((n,), -1, dtype=torch.long, device=self.device)  # -1: none pending
         self.last_view: torch.Tensor | None = None
         self._moves = torch.tensor(_MOVES, dtype=torch.long, device=self.device)  # (4, 2)
+        # row search (row_stride > 0): after a turn, move to the next search row, start + s, - s, + 2s, - 2s, ...
+        self.row_stride = int(row_stride)
+        self.cover_cells = max(1, int(round(float(row_cover) * self.yaw_cells)))
+        self.row_k = torch.zeros(n, dtype=torch.long, device=self.device)  # index of the current search row
+        self.row_target = torch.zeros(n, dtype=torch.long, device=self.device)  # its pitch offset, steps
+        self.row_seek = torch.zeros(n, dtype=torch.bool, device=self.device)  # on the way to it
+        self.last_blocked = torch.zeros(n, dtype=torch.bool, device=self.device)
 
     def reset(self, env_ids: torch.Tensor) -> None:
         """Slots ``env_ids`` (long tensor) start a new episode at offset (0, 0) with no visits."""
@@ -73,6 +82,10 @@ class RevisitPenalty:
         self.pitch[ids] = 0
         self.yaw[ids] = 0
         self.last_move[ids] = -1
+        self.row_k[ids] = 0
+        self.row_target[ids] = 0
+        self.row_seek[ids] = False
+        self.last_blocked[ids] = False
 
     def _destinations(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pitch row and yaw column of each move's destination: two ``(K, 4)`` long tensors."""
@@ -101,11 +114,37 @@ class RevisitPenalty:
         seen = self.visits[idx[:, None], p, y]  # (K, 4)
         out = logits.clone()
         out[:, :4] = out[:, :4] - self.penalty * seen.to(out.dtype)
+        if self.row_stride > 0:
+            self._row_search(idx, rows, out)
         # the stop decision stays the policy's own: penalised moves must not make STOP win by default
         stop = logits.argmax(dim=-1) == 4
         out[:, 4] = torch.where(stop, logits[:, 4], torch.full_like(logits[:, 4], float("-inf")))
         out[stop] = torch.where(torch.arange(5, device=out.device) == 4, logits[stop], torch.full_like(logits[stop], float("-inf")))
         return out
+
+    def _row_search(self, idx: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
+        """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn, force pitch
+        moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the start, ``s = row_stride``); a
+        forced move that is blocked (the pitch limit) skips to the next row. Edits ``out`` (K, 5) in place."""
+        band = (rows[:, None] + torch.arange(-2, 3, device=self.device)[None]).clamp(0, 2 * self.max_pitch)  # (K, 5)
+        coverage = (self.visits[idx[:, None], band] > 0).any(dim=1).sum(dim=-1)  # (K,) yaw cells seen in the band
+        seek = self.row_seek[idx]
+        pitch = self.pitch[idx]
+        blocked = seek & self.last_blocked[idx]
+        seek = seek & (pitch != self.row_target[idx])  # arrived
+        advance = blocked | (~seek & (coverage >= self.cover_cells))
+        k = self.row_k[idx] + advance.long()
+        m = (k + 1) // 2
+        target = torch.where(k % 2 == 1, m, -m) * self.row_stride
+        target = torch.where(advance, target, self.row_target[idx])
+        seek = (seek | advance) & (target.abs() <= self.max_pitch)
+        self.row_k[idx] = k
+        self.row_target[idx] = target
+        self.row_seek[idx] = seek
+        toward = torch.where(target > pitch, 0, 1)  # UP raises the pitch offset, DOWN lowers it
+        forced = torch.full_like(out[:, :4], float("-inf"))
+        forced.scatter_(1, toward[:, None], 0.0)
+        out[:, :4] = torch.where(seek[:, None], forced, out[:, :4])
 
     def moved(self, idx: torch.Tensor, actions: torch.Tensor) -> None:
         """Slots ``idx`` take ``actions`` ``(K,)``; their poses move at the next :meth:`adjust`."""
@@ -120,6 +159,7 @@ class RevisitPenalty:
         go = (move >= 0) & changed
         step = self._moves[move.clamp(min=0)]  # (K, 2)
         blocked = (move >= 0) & ~changed
+        self.last_blocked[idx] = blocked
         if bool(blocked.any()):  # count the unreachable cell as visited, so the blocked move loses its appeal
             b = idx[blocked]
             p = (self.pitch[b] + step[blocked, 0]).clamp(-self.max_pitch, self.max_pitch) + self.max_pitch
@@ -140,6 +180,7 @@ class RevisitPenalty:
             "yaw": self.yaw.cpu().clone(),
             "last_move": self.last_move.cpu().clone(),
             "last_view": None if self.last_view is None else self.last_view.cpu().clone(),
+            "row": torch.stack([self.row_k, self.row_target, self.row_seek.long(), self.last_blocked.long()]).cpu(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -153,5 +194,11 @@ class RevisitPenalty:
         self.pitch.copy_(state["pitch"])
         self.yaw.copy_(state["yaw"])
         self.last_move.copy_(state["last_move"])
+        if state.get("row") is not None:
+            row = state["row"].to(self.device)
+            self.row_k.copy_(row[0])
+            self.row_target.copy_(row[1])
+            self.row_seek.copy_(row[2].bool())
+            self.last_blocked.copy_(row[3].bool())
         last = state.get("last_view")
         self.last_view = None if last is None else last.to(self.device).clone()

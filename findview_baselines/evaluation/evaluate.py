@@ -227,12 +227,17 @@ def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> d
             revisit = float(_get(cfg, "agent.revisit_penalty", 0.0))
         else:  # the setting the run validated with
             revisit = float(dict(run_conf.get("agent") or {}).get("revisit_penalty", 0.0) or 0.0)
+        if _overridden(overrides, "agent.revisit_row_stride"):
+            stride = int(_get(cfg, "agent.revisit_row_stride", 0))
+        else:
+            stride = int(dict(run_conf.get("agent") or {}).get("revisit_row_stride", 0) or 0)
         cfg.agent = OmegaConf.create({
             "name": "ppo",
             "variant": str(sig.get("variant", "early_fusion")),
             "hidden_size": int(sig.get("hidden_size", 512)),
             "sample": sample,
             "revisit_penalty": revisit,
+            "revisit_row_stride": stride,
         })
     return run_conf
 
@@ -258,6 +263,7 @@ def build_agent(cfg: DictConfig, num_envs: int, device: Any, agent_explicit: boo
                 os.path.expanduser(str(checkpoint)), num_envs, device, seed, bool(sample),
                 height=int(_get(cfg, "sim.height", 256)), width=int(_get(cfg, "sim.width", 256)),
                 revisit_penalty=float(_get(cfg, "agent.revisit_penalty", 0.0) or 0.0),
+                revisit_row_stride=int(_get(cfg, "agent.revisit_row_stride", 0) or 0),
             )
         except (FileNotFoundError, ValueError) as err:
             raise EvalError(str(err)) from err

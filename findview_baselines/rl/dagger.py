@@ -392,6 +392,7 @@ class DAggerTrainer:
         set_level: Callable[[int], None] | None = None,
         seed: int = 0,
         revisit_penalty: float = 0.0,
+        revisit_row_stride: int = 0,
     ) -> None:
         self.env = env
         self.policy = policy
@@ -425,7 +426,9 @@ class DAggerTrainer:
         self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
         self._before_update: dict[str, Any] | None = None  # resume parts while a rollout runs
         # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
-        self.revisits = RevisitPenalty(n, revisit_penalty, dev) if revisit_penalty > 0 else None
+        self.revisits = (
+            RevisitPenalty(n, revisit_penalty, dev, row_stride=revisit_row_stride) if revisit_penalty > 0 else None
+        )
         self._all_slots = torch.arange(n, device=dev)
 
     # ---------------------------------------------------------------------------------------------

@@ -498,7 +498,8 @@ def make_algorithm(conf: Mapping[str, Any], env: Any, policy: Policy, scheduler:
 
         dcfg = DAggerConfig.from_mapping(dict(t.get("dagger") or {}))
         return DAggerTrainer(env, policy, dcfg, int(t["num_updates"]), scheduler, set_level, seed=seed,
-                             revisit_penalty=float(agent.get("revisit_penalty", 0.0) or 0.0))
+                             revisit_penalty=float(agent.get("revisit_penalty", 0.0) or 0.0),
+                             revisit_row_stride=int(agent.get("revisit_row_stride", 0) or 0))
     from findview_baselines.rl.ppo import PPOConfig
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
@@ -744,7 +745,8 @@ def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> 
     main_validates = distributed.all_gather(val_env is not None)[0]  # only rank 0 has val episodes
     if val_env is not None:
         agent = PPOAgent(policy, val_envs, device, seed, sample=bool(agent_cfg.get("sample", False)),
-                         revisit_penalty=float(agent_cfg.get("revisit_penalty", 0.0) or 0.0))
+                         revisit_penalty=float(agent_cfg.get("revisit_penalty", 0.0) or 0.0),
+                         revisit_row_stride=int(agent_cfg.get("revisit_row_stride", 0) or 0))
         callbacks.append(ValidationCallback(val_env, agent, int(t.get("val_interval", 0)),
                                             bool(t.get("val_at_end", True)), tb))
     elif main_validates:
