@@ -18,6 +18,13 @@ move the dead-reckoned pose, and the cell it aimed at gains a visit, so pressing
 appeal like a loop does. (A move in a textureless region can leave a small view unchanged too; it is then
 taken for a blocked one, so the dead reckoning is approximate there, where the view cannot tell poses apart.)
 
+**Row search** (``row_stride > 0``): the memory alone leaves a finished row one step at a time, so a target far
+above or below is found late or never. With a stride ``s`` (in steps; 45 = half of a 90-degree FoV), once the
+rows within 2 steps of the current one hold ``row_cover`` of a full turn of yaw cells, the agent's moves are
+replaced by pitch moves to the next search row, at offsets ``+s, -s, +2s, -2s, ...`` from its start row; there
+the policy acts again. A forced move that is blocked (the pitch limit) skips to the next row; rows beyond
+``max_pitch_steps`` end the search. ``STOP`` still wins wherever it is the policy's argmax.
+
 Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at 1 degree) on the policy's device; every
 operation is batched over the slots (no Python loop over environments).
 """
