@@ -25,15 +25,15 @@ replaced by pitch moves to the next search row, at offsets ``+s, -s, +2s, -2s, .
 the policy acts again. A forced move that is blocked (the pitch limit) skips to the next row; rows beyond
 ``max_pitch_steps`` end the search. ``STOP`` still wins wherever it is the policy's argmax.
 
-Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at 1 degree) on the policy's device; every
-operation is batched over the slots (no Python loop over environments).
+Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at
+1 degree) on the policy's device; every operation is batched over the slots (no Python loop over environments).
 """
 
 from __future__ import annotations
 
-import torch
-
 from typing import Any
+
+import torch
 
 __all__ = ["RevisitPenalty"]
 
@@ -51,6 +51,8 @@ class RevisitPenalty:
         step_deg: degrees per action (the yaw grid has ``360 / step_deg`` cells).
         max_pitch_steps: pitch offsets are clamped to ``[-max_pitch_steps, max_pitch_steps]`` steps
             (180 degrees covers any start and target).
+        row_stride: row search stride in steps (0: off; see the module docstring).
+        row_cover: share of a full turn of yaw cells seen near the current row that ends it (0 < x <= 1).
     """
 
     def __init__(
