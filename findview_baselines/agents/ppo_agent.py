@@ -30,7 +30,7 @@ import torch
 
 from findview.episode import Episode
 from findview_baselines.agents.base import STOP, Agent, episode_rng, to_plain_dict
-from findview_baselines.agents.revisit import RevisitPenalty
+from findview_baselines.agents.revisit import SEARCH_KEYS, make_revisit_penalty, search_settings
 
 __all__ = ["PPOAgent", "load_ppo_checkpoint"]
 
@@ -62,7 +62,7 @@ class PPOAgent(Agent):
 
     name = "ppo"
     #: keys of configs/agent/ppo.yaml used here; every other key (training hyper-parameters) is ignored
-    CONFIG_KEYS = ("checkpoint", "sample", "height", "width", "revisit_penalty", "revisit_row_stride")
+    CONFIG_KEYS = ("checkpoint", "sample", "height", "width", *SEARCH_KEYS)
 
     def __init__(
         self,
@@ -81,12 +81,7 @@ class PPOAgent(Agent):
         self.done = np.zeros(self.num_envs, dtype=bool)
         self._fallback = np.random.default_rng(self.seed)
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
-        penalty = float(revisit_penalty)
-        if penalty < 0 or penalty != penalty:
-            raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
-        self.revisits = (
-            RevisitPenalty(self.num_envs, penalty, self.device, row_stride=int(revisit_row_stride)) if penalty > 0 else None
-        )
+        self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_row_stride)
 
     # construction --------------------------------------------------------------------------------
     @classmethod
@@ -144,7 +139,7 @@ class PPOAgent(Agent):
         sample = bool(c.get("sample", False))
         return cls.from_checkpoint(
             c["checkpoint"], num_envs, device, seed, bool(sample), height=c.get("height"), width=c.get("width"),
-            revisit_penalty=float(c.get("revisit_penalty") or 0.0), revisit_row_stride=int(c.get("revisit_row_stride") or 0),
+            **search_settings(c),
         )
 
     # acting --------------------------------------------------------------------------------------

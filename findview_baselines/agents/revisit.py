@@ -35,7 +35,31 @@ from typing import Any
 
 import torch
 
-__all__ = ["RevisitPenalty"]
+__all__ = ["RevisitPenalty", "SEARCH_KEYS", "search_settings", "make_revisit_penalty"]
+
+#: the agent-config keys of the search memory (``agent.revisit_penalty``, ``agent.revisit_row_stride``)
+SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride")
+
+
+def search_settings(agent_cfg: Any) -> dict[str, Any]:
+    """``{"revisit_penalty": float, "revisit_row_stride": int}`` from an agent config (mapping; missing = 0)."""
+    get = agent_cfg.get if agent_cfg is not None else (lambda k, d=None: d)
+    return {"revisit_penalty": float(get("revisit_penalty", 0.0) or 0.0),
+            "revisit_row_stride": int(get("revisit_row_stride", 0) or 0)}
+
+
+def make_revisit_penalty(
+    num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0
+) -> "RevisitPenalty | None":
+    """The search memory of ``num_envs`` slots, or ``None`` when ``revisit_penalty`` is 0 (off).
+
+    Raises:
+        ValueError: a negative or NaN penalty, or a negative stride.
+    """
+    penalty = float(revisit_penalty)
+    if penalty < 0 or penalty != penalty:
+        raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
+    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride)) if penalty > 0 else None
 
 #: (pitch, yaw) grid steps of UP, DOWN, LEFT, RIGHT (STOP does not move)
 _MOVES = ((1, 0), (-1, 0), (0, -1), (0, 1))

@@ -205,6 +205,7 @@ def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> d
     """
     from omegaconf import open_dict
 
+    from findview_baselines.agents.revisit import search_settings
     from findview_baselines.rl.checkpoint import load_checkpoint
 
     path = os.path.expanduser(str(_get(cfg, "checkpoint")))
@@ -223,21 +224,15 @@ def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> d
         if "fov" in trained_sim and not _overridden(overrides, "sim", "sim.fov"):
             cfg.sim.fov = float(trained_sim["fov"])
         sample = bool(_get(cfg, "agent.sample", False)) if _get(cfg, "agent.name") == "ppo" else False
-        if _overridden(overrides, "agent.revisit_penalty"):
-            revisit = float(_get(cfg, "agent.revisit_penalty", 0.0))
-        else:  # the setting the run validated with
-            revisit = float(dict(run_conf.get("agent") or {}).get("revisit_penalty", 0.0) or 0.0)
-        if _overridden(overrides, "agent.revisit_row_stride"):
-            stride = int(_get(cfg, "agent.revisit_row_stride", 0))
-        else:
-            stride = int(dict(run_conf.get("agent") or {}).get("revisit_row_stride", 0) or 0)
+        # the search memory: a key given on the command line, else the setting the run validated with
+        search = search_settings(dict(run_conf.get("agent") or {}))
+        search.update({k: v for k, v in search_settings(cfg.agent).items() if _overridden(overrides, f"agent.{k}")})
         cfg.agent = OmegaConf.create({
             "name": "ppo",
             "variant": str(sig.get("variant", "early_fusion")),
             "hidden_size": int(sig.get("hidden_size", 512)),
             "sample": sample,
-            "revisit_penalty": revisit,
-            "revisit_row_stride": stride,
+            **search,
         })
     return run_conf
 
@@ -250,6 +245,7 @@ def build_agent(cfg: DictConfig, num_envs: int, device: Any, agent_explicit: boo
     """
     from findview_baselines.agents import agent_names, make_agent
     from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.agents.revisit import search_settings
 
     name = str(_get(cfg, "agent.name", "?"))
     checkpoint = _get(cfg, "checkpoint")
@@ -262,8 +258,7 @@ def build_agent(cfg: DictConfig, num_envs: int, device: Any, agent_explicit: boo
             agent = PPOAgent.from_checkpoint(
                 os.path.expanduser(str(checkpoint)), num_envs, device, seed, bool(sample),
                 height=int(_get(cfg, "sim.height", 256)), width=int(_get(cfg, "sim.width", 256)),
-                revisit_penalty=float(_get(cfg, "agent.revisit_penalty", 0.0) or 0.0),
-                revisit_row_stride=int(_get(cfg, "agent.revisit_row_stride", 0) or 0),
+                **search_settings(cfg.agent),
             )
         except (FileNotFoundError, ValueError) as err:
             raise EvalError(str(err)) from err

@@ -62,7 +62,7 @@ from findview.task.oracle import (
     overlap_mask,
     rotation_labels,
 )
-from findview_baselines.agents.revisit import RevisitPenalty
+from findview_baselines.agents.revisit import make_revisit_penalty
 from findview_baselines.rl import distributed
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
 from findview_baselines.rl.policy import NUM_ACTIONS, AuxHead, Policy, aux_loss, check_signature
@@ -426,9 +426,7 @@ class DAggerTrainer:
         self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
         self._before_update: dict[str, Any] | None = None  # resume parts while a rollout runs
         # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
-        self.revisits = (
-            RevisitPenalty(n, revisit_penalty, dev, row_stride=revisit_row_stride) if revisit_penalty > 0 else None
-        )
+        self.revisits = make_revisit_penalty(n, dev, revisit_penalty, revisit_row_stride)
         self._all_slots = torch.arange(n, device=dev)
 
     # ---------------------------------------------------------------------------------------------

@@ -494,12 +494,12 @@ def make_algorithm(conf: Mapping[str, Any], env: Any, policy: Policy, scheduler:
     seed = int(t["seed"]) if seed is None else int(seed)
     set_level = lambda k: setattr(source, "level", k)  # noqa: E731
     if t.get("algorithm", "ppo") == "dagger":
+        from findview_baselines.agents.revisit import search_settings
         from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer
 
         dcfg = DAggerConfig.from_mapping(dict(t.get("dagger") or {}))
         return DAggerTrainer(env, policy, dcfg, int(t["num_updates"]), scheduler, set_level, seed=seed,
-                             revisit_penalty=float(agent.get("revisit_penalty", 0.0) or 0.0),
-                             revisit_row_stride=int(agent.get("revisit_row_stride", 0) or 0))
+                             **search_settings(agent))
     from findview_baselines.rl.ppo import PPOConfig
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
@@ -616,6 +616,7 @@ def _rank_trainer_state(trainer: Mapping[str, Any], rank: int, world: int, seed:
 def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> TrainResult:
     from findview.dataset import EpisodeSampler
     from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.agents.revisit import search_settings
 
     conf = _plain(cfg)
     dataset_cfg = cfg["dataset"]
@@ -745,8 +746,7 @@ def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> 
     main_validates = distributed.all_gather(val_env is not None)[0]  # only rank 0 has val episodes
     if val_env is not None:
         agent = PPOAgent(policy, val_envs, device, seed, sample=bool(agent_cfg.get("sample", False)),
-                         revisit_penalty=float(agent_cfg.get("revisit_penalty", 0.0) or 0.0),
-                         revisit_row_stride=int(agent_cfg.get("revisit_row_stride", 0) or 0))
+                         **search_settings(agent_cfg))
         callbacks.append(ValidationCallback(val_env, agent, int(t.get("val_interval", 0)),
                                             bool(t.get("val_at_end", True)), tb))
     elif main_validates:
