@@ -76,7 +76,7 @@ def build_target_transform(corruption_cfg: Any):
 
     severity = section_get(corruption_cfg, "severity", 3)
     levels = [int(s) for s in severity] if isinstance(severity, Sequence) and not isinstance(severity, str) else [int(severity)]
-    return EpisodeCorruption(names, min(levels), max(levels))
+    return EpisodeCorruption(names, min(levels), max(levels), float(section_get(corruption_cfg, "clean_fraction", 0.0)))
 
 
 def build_env(

@@ -1,11 +1,12 @@
 """Typed config schemas of the core: ``sim``, ``task`` (with ``task.reward``), ``dataset``, ``corruption``.
 
 Each dataclass is the schema of one Hydra config group. :func:`register_core_configs` stores them in
-Hydra's ConfigStore as ``<group>/base_<group>``; every YAML file of the group starts with
-``defaults: [base_<group>, _self_]``, so a wrong type or an unknown key fails when the config is
+Hydra's ConfigStore as ``base_<group>`` at the root, outside the groups (so that ``--help`` lists only
+the files a user picks); every YAML file of the group starts with ``defaults: [/base_<group>@_here_,
+_self_]``, so a wrong type or an unknown key fails when the config is
 composed (before any work starts). Value ranges that a type cannot express are checked by
 ``__post_init__``, which runs when the tools turn the composed config into objects
-(:func:`findview.config_errors.validate`); the messages name the full key.
+(:func:`findview_baselines.cli.validate_config`); the messages name the full key.
 
 The field docstrings are the documentation of every key (units: degrees, pixels, steps, MiB). The task
 itself (conventions, difficulties, metrics, rewards) is described in docs/TASK.md.
@@ -179,6 +180,10 @@ class CorruptionConfig:
     ramp_updates: int = 0
     """Training only: raise the highest severity from `low` to `high` linearly over this many updates
     (0: no ramp)."""
+    clean_fraction: float = 0.0
+    """Share of episodes (0-1, drawn per episode from its seed) whose target stays clean although a
+    corruption is named: training with corruptions keeps seeing exact matches. 0 keeps every episode's draw
+    as it was."""
 
     def __post_init__(self) -> None:
         sev = self.severity
@@ -190,6 +195,7 @@ class CorruptionConfig:
         )
         check(ok, "corruption.severity", sev, "an integer 1-5 or a range [low, high] within 1-5")
         check(self.ramp_updates >= 0, "corruption.ramp_updates", self.ramp_updates, "0 or more updates")
+        check(0.0 <= self.clean_fraction < 1.0, "corruption.clean_fraction", self.clean_fraction, "a share in [0, 1)")
         from findview.corruptions import check_frost_textures, resolve_names  # deferred: keeps imports light
 
         name = list(self.name) if isinstance(self.name, (list, tuple)) else self.name
@@ -205,11 +211,12 @@ class CorruptionConfig:
 
 
 def register_core_configs() -> None:
-    """Store the core schemas in Hydra's ConfigStore (``<group>/base_<group>``). Idempotent."""
+    """Store the core schemas in Hydra's ConfigStore (``base_<group>``, at the root: not an option of the
+    group, hidden from ``--help``; the group's YAML files name it as ``/base_<group>@_here_``). Idempotent."""
     from hydra.core.config_store import ConfigStore
 
     cs = ConfigStore.instance()
-    cs.store(group="sim", name="base_sim", node=SimConfig)
-    cs.store(group="task", name="base_task", node=TaskConfig)
-    cs.store(group="dataset", name="base_dataset", node=DatasetConfig)
-    cs.store(group="corruption", name="base_corruption", node=CorruptionConfig)
+    cs.store(name="base_sim", node=SimConfig)
+    cs.store(name="base_task", node=TaskConfig)
+    cs.store(name="base_dataset", node=DatasetConfig)
+    cs.store(name="base_corruption", node=CorruptionConfig)

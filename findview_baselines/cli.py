@@ -70,13 +70,20 @@ class Interrupted(Exception):
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
+    from findview.dataset.discovery import DatasetError
     from findview.dataset.sampler import SamplingError
+    from findview.dataset.splits import MissingDataFile
+    from findview.imageio import PanoramaError
+    from findview_baselines.rl.checkpoint import CheckpointError, CheckpointNotFound, OutputPathError
 
-    return (UserError, ConfigError, ValueError, FileNotFoundError, PermissionError, SamplingError)
+    return (UserError, ConfigError, DatasetError, MissingDataFile, PanoramaError, SamplingError, CheckpointError,
+            CheckpointNotFound, OutputPathError)
 
 
-#: exceptions printed as one line with exit status 2 (``ValueError`` covers ``ConfigError`` and the data
-#: set errors); set ``FINDVIEW_DEBUG=1`` to get their traceback instead
+#: exceptions printed as one line with exit status 2: the project's own error types for problems a user
+#: caused (config, data, checkpoint, output path). A bare ``ValueError`` / ``OSError`` from inside the
+#: library is a bug and keeps its traceback (exit 1). Set ``FINDVIEW_DEBUG=1`` to get the traceback of a
+#: user error too.
 USER_ERRORS: tuple[type[BaseException], ...] = _user_errors()
 
 
@@ -223,7 +230,8 @@ def _fail(tool: str, message: str, status: int = 2) -> NoReturn:
 
 
 def precheck(tool: str, config_name: str, argv: Sequence[str], check_run_dir: bool = False) -> None:
-    """Compose and validate every job of the command line; exit 2 with one line on the first problem."""
+    """Compose and validate every job of the command line; exit 2 with one line on the first problem
+    (``check_run_dir``: also a run / sweep folder that cannot be written, see :func:`check_output_folder`)."""
     flags = [a for a in argv if a.startswith("-")]
     if any(f not in ("-m", "--multirun") for f in flags):
         return  # --help, --cfg job, --info ...: Hydra's own business
@@ -237,31 +245,50 @@ def precheck(tool: str, config_name: str, argv: Sequence[str], check_run_dir: bo
             validate_config(cfg)
         except ConfigError as err:
             _fail(tool, str(err))
-    if not flags and check_run_dir:
-        _precheck_run_dir(tool, cfg)
+    if check_run_dir:
+        _precheck_run_dir(tool, cfg, multirun=bool(flags))
 
 
-def _precheck_run_dir(tool: str, cfg: DictConfig) -> None:
-    """A single run into a folder that cannot be written, or that a live training holds, fails before
-    Hydra creates anything (folders whose name Hydra only knows at run time are left to the run)."""
+def check_output_folder(folder: str | os.PathLike, what: str) -> None:
+    """Prove that ``folder`` can be created and written, leaving nothing behind that was not there.
+
+    Raises:
+        OutputPathError: (from :func:`findview_baselines.rl.checkpoint.check_writable`) naming the folder.
+    """
     from findview_baselines.rl.checkpoint import check_writable
+
+    folder = Path(folder).expanduser().absolute()
+    first_new = None  # the outermost folder the check creates
+    for p in (folder, *folder.parents):
+        if os.path.lexists(p):
+            break
+        first_new = p
+    try:
+        check_writable(folder, what)
+    finally:
+        if first_new is not None:
+            shutil.rmtree(first_new, ignore_errors=True)  # Hydra makes it; a check must leave nothing behind
+
+
+def _precheck_run_dir(tool: str, cfg: DictConfig, multirun: bool = False) -> None:
+    """A run into a folder that cannot be written (or, single runs, that a live training holds) fails
+    before Hydra creates anything; a sweep checks its sweep folder. Shared by every tool."""
+    from findview_baselines.rl.checkpoint import OutputPathError
     from findview_baselines.rl.safety import lock_holder
 
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     try:
-        run_dir = Path(str(cfg.hydra.run.dir))
+        run_dir = Path(str(OmegaConf.select(cfg, key, throw_on_missing=True)))
     except Exception:
-        return
-    holder = lock_holder(run_dir) if run_dir.is_dir() else None
+        return  # a name Hydra only knows at run time: left to the run
+    holder = lock_holder(run_dir) if not multirun and run_dir.is_dir() else None
     if holder is not None:
         _fail(tool, f"run folder {run_dir} is in use by a live training run (pid {holder}); wait for it to "
                     f"finish, stop it, or train into another folder (hydra.run.dir=<folder>)")
-    existed = run_dir.exists()
     try:
-        check_writable(run_dir, "run folder (hydra.run.dir)")
-    except PermissionError as err:
+        check_output_folder(run_dir, f"{'sweep' if multirun else 'run'} folder ({key})")
+    except OutputPathError as err:
         _fail(tool, str(err))
-    if not existed:
-        shutil.rmtree(run_dir, ignore_errors=True)  # Hydra makes it; a check must leave nothing behind
 
 
 def _is_disposable(entry: Path) -> bool:
@@ -288,9 +315,24 @@ def _remove_if_empty_run(run_dir: Path) -> None:
 
 
 def run_tool(
-    config_name: str, main: Callable[[DictConfig, ToolContext], Any], tool: str | None = None, check_run_dir: bool = False
+    config_name: str,
+    main: Callable[[DictConfig, ToolContext], Any],
+    tool: str | None = None,
+    check_run_dir: bool = True,
+    implied: Callable[[list[str]], list[str]] | None = None,
 ) -> None:
-    """Run ``main`` as the Hydra app of ``configs/<config_name>.yaml`` (see module docstring)."""
+    """Run ``main`` as the Hydra app of ``configs/<config_name>.yaml`` (see module docstring).
+
+    Args:
+        config_name: the primary config.
+        main: ``main(cfg, ctx)``, called per job.
+        tool: the name in messages (default ``config_name``).
+        check_run_dir: refuse a run / sweep folder that cannot be written before anything runs (one line,
+            exit 2); ``False`` where another process owns the folder (torchrun ranks > 0).
+        implied: rewrites the command-line arguments before composition, for overrides that imply
+            others (``tools/eval.py``: ``checkpoint=`` implies ``agent=ppo``); validation, Hydra and
+            ``ctx.overrides`` see the result.
+    """
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
@@ -300,6 +342,8 @@ def run_tool(
     tool = tool or config_name
     register_configs()
     register_resolvers()
+    if implied is not None:
+        sys.argv[1:] = implied(list(sys.argv[1:]))
     precheck(tool, config_name, sys.argv[1:], check_run_dir)
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)

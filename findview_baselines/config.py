@@ -189,8 +189,8 @@ class RotationAgentConfig:
         check(self.reject_radius >= 0, "agent.reject_radius", self.reject_radius, "0 or more degrees")
 
 
-POLICY_VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct")
-POLICY_PRECISIONS = ("fp32", "bf16")  # findview_baselines.rl.policy.PRECISIONS
+from findview_baselines.rl.policy import FINE_VARIANTS, PRECISIONS as POLICY_PRECISIONS  # noqa: E402  (one list each)
+from findview_baselines.rl.policy import VARIANTS as POLICY_VARIANTS  # noqa: E402
 
 
 @dataclass
@@ -235,9 +235,9 @@ class PPOAgentConfig(PPOConfig):
         check(self.precision in POLICY_PRECISIONS, "agent.precision", self.precision, " | ".join(POLICY_PRECISIONS))
         check(self.hidden_size >= 1, "agent.hidden_size", self.hidden_size, "a positive size")
         check(
-            self.fine_shifts == 0 or (self.fine_shifts > 0 and self.variant in ("correlation", "direct")),
+            self.fine_shifts == 0 or (self.fine_shifts > 0 and self.variant in FINE_VARIANTS),
             "agent.fine_shifts", self.fine_shifts,
-            "0 (off), or a positive number of pixels with variant=correlation or direct",
+            "0 (off), or a positive number of pixels with variant=" + " | ".join(FINE_VARIANTS),
         )
         check(self.fine_scales >= 1, "agent.fine_scales", self.fine_scales, "a positive number of pyramid levels")
         check(self.lr > 0, "agent.lr", self.lr, "a positive learning rate")
@@ -333,10 +333,15 @@ class SchedulerConfig:
     """unbounded (paper: level k mixes the first k difficulties) | bounded (level k: only the k-th)."""
     num_levels: int = 3
     """Levels (1: easy only; 3: easy -> medium -> hard)."""
+    start_level: int = 1
+    """The level of the first update (a run from `init_from` can start at 3: hard episodes from the first
+    update); the remaining levels share the updates equally."""
 
     def __post_init__(self) -> None:
         check(self.mode in ("unbounded", "bounded"), "scheduler.mode", self.mode, "unbounded | bounded")
         check(1 <= self.num_levels <= 3, "scheduler.num_levels", self.num_levels, "1, 2 or 3")
+        check(1 <= self.start_level <= self.num_levels, "scheduler.start_level", self.start_level,
+              f"a level from 1 to scheduler.num_levels={self.num_levels}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -472,7 +477,10 @@ _REGISTERED = False
 
 
 def register_configs() -> None:
-    """Store every schema in Hydra's ConfigStore. Idempotent; called by the tools before composing."""
+    """Store every schema in Hydra's ConfigStore. Idempotent; called by the tools before composing.
+
+    The group schemas go to the root as ``base_<name>`` (not options of their group, so ``--help`` and
+    the "valid:" lists show only the YAML files); the group files name them as ``/base_<name>@_here_``."""
     global _REGISTERED
     if _REGISTERED:
         return
@@ -480,12 +488,12 @@ def register_configs() -> None:
 
     register_core_configs()
     cs = ConfigStore.instance()
-    cs.store(group="agent", name="base_random", node=RandomAgentConfig)
-    cs.store(group="agent", name="base_oracle", node=OracleAgentConfig)
-    cs.store(group="agent", name="base_feature", node=FeatureAgentConfig)
-    cs.store(group="agent", name="base_rotation", node=RotationAgentConfig)
-    cs.store(group="agent", name="base_ppo", node=PPOAgentConfig)
-    cs.store(group="trainer", name="base_trainer", node=TrainerConfig)
+    cs.store(name="base_random", node=RandomAgentConfig)
+    cs.store(name="base_oracle", node=OracleAgentConfig)
+    cs.store(name="base_feature", node=FeatureAgentConfig)
+    cs.store(name="base_rotation", node=RotationAgentConfig)
+    cs.store(name="base_ppo", node=PPOAgentConfig)
+    cs.store(name="base_trainer", node=TrainerConfig)
     cs.store(name="train_schema", node=TrainConfig)
     cs.store(name="eval_schema", node=EvalConfig)
     cs.store(name="make_dataset_schema", node=MakeDatasetConfig)

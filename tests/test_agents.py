@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+from findview import sim as sim_mod
+from findview import task
 from findview.episode import Episode
 from findview.geometry import l1_distance, wrap_yaw
 from findview.imageio import load_panorama
@@ -522,8 +524,6 @@ def test_rotation_agent_far_target_and_the_pitch_bound(sun360_mini_files):
     """The target is far from the start (no overlap, first search row too high); the start is near the
     top bound and the search runs into the clamp: the agent's dead reckoning must keep its pitch, and
     the search must find the target within its rows (a bounded number of steps)."""
-    task = pytest.importorskip("findview.task")
-    sim_mod = pytest.importorskip("findview.sim")
     image = str({f.name: f for f in sun360_mini_files}[PANOS[1]])
     e = Episode("far", image, 55, 10, -45, -150, difficulty="hard", seed=3)
     bank = sim_mod.PanoramaBank("cpu", 256, prefetch_workers=0)
@@ -563,10 +563,6 @@ ENV_PITCH_BOUND = 30
 
 
 def _env_run(agent_name: str, episodes: list[Episode], num_envs: int, max_steps: int, cfg=None) -> list[dict]:
-    task = pytest.importorskip("findview.task")
-    sim_mod = pytest.importorskip("findview.sim")
-    if not hasattr(task, "FindViewEnv"):
-        pytest.skip("findview.task.FindViewEnv not available")
     bank = sim_mod.PanoramaBank("cpu", 256, prefetch_workers=0)
     # a small pitch bound keeps the simulator's per-pitch grids cheap; the episodes stay well inside it
     sim = sim_mod.Simulator(bank, FOV, H, W, pitch_bound=ENV_PITCH_BOUND)

@@ -35,13 +35,14 @@ def collect():
     return mod.main
 
 
-def metrics(eps: float, spl: float = 0.5) -> dict:
-    return {"eps": eps, "omega_stop": 1.0, "omega_perf": 0.5, "spl": spl, "episodes": 4}
+def metrics(eps: float, spl: float = 0.5, stop: float = 1.0) -> dict:
+    return {"eps": eps, "omega_stop": stop, "omega_perf": 0.5, "spl": spl, "episodes": 4}
 
 
 def fake_run(
     root: Path, name: str, eps: dict[str, float], agent: str = "orb", d_thresh=20, fov: int = 90, split: str = "val",
-    difficulty: str | None = None, meta: dict | None = None, spl: dict[str, float] | None = None, **extra,
+    difficulty: str | None = None, meta: dict | None = None, spl: dict[str, float] | None = None,
+    stop: dict[str, float] | None = None, **extra,
 ) -> Path:
     """A finished tools/eval.py run folder: .hydra/config.yaml (JSON is YAML), summary.json, run.json."""
     d = root / name
@@ -50,11 +51,12 @@ def fake_run(
         "agent": {"name": agent, "d_thresh": d_thresh, "threads": 4, **extra.pop("agent_extra", {})},
         "dataset": {"name": "toy", "out_dir": "/data/toy"},
         "sim": {"fov": fov, "height": 64, "width": 64, "device": "cpu"},
+        "task": {"max_steps": extra.pop("max_steps", 5000)},
         "split": split, "difficulty": difficulty, "episodes": None, "seed": 0, "progress": False,
         "num_envs": extra.pop("num_envs", 16), **extra,
     }
     (d / ".hydra" / "config.yaml").write_text(json.dumps(cfg))
-    summary = {k: metrics(v, (spl or {}).get(k, 0.5)) for k, v in eps.items()}
+    summary = {k: metrics(v, (spl or {}).get(k, 0.5), (stop or {}).get(k, 1.0)) for k, v in eps.items()}
     summary["runtime"] = {"agent_fps": 1.0, "env_fps": 1.0}
     (d / "summary.json").write_text(json.dumps(summary))
     (d / "run.json").write_text(json.dumps({"agent": agent, "dataset": "toy", "split": split, **(meta or {})}))
@@ -229,13 +231,17 @@ def test_clear_runs_of_a_severity_sweep_are_not_conflicts(tmp_path):
 
 
 def test_learned_agents_are_rows_named_by_their_checkpoint(tmp_path):
-    """Two checkpoints (with their own view size) and a rule-based agent land in one corruption table, the
-    learned rows labelled by the shortest distinct end of the checkpoint path."""
+    """Three checkpoints (with their own view size) and a rule-based agent land in one corruption table, the
+    learned rows titled by their trainer and variant (never "ppo" for a DAgger-trained agent) and, where
+    those are equal, labelled by the shortest distinct end of the checkpoint path."""
     eps3 = {"easy": 3.0, "medium": 3.0, "hard": 3.0}
     fake_run(tmp_path, "orb", eps3, meta={"corruption": "fog", "severity": 1})
-    for name, ckpt, eps in (("a", "/runs/a/checkpoints/best.pth", 1.0), ("b", "/runs/b/checkpoints/best.pth", 2.0)):
+    dagger = {"trainer": "dagger", "variant": "direct"}
+    for name, ckpt, eps, info in (("a", "/runs/a/checkpoints/best.pth", 1.0, dagger),
+                                  ("b", "/runs/b/checkpoints/best.pth", 2.0, dagger),
+                                  ("c", "/runs/c/checkpoints/best.pth", 4.0, {"trainer": "ppo", "variant": "early_fusion"})):
         fake_run(tmp_path, name, {d: eps for d in eps3}, agent="ppo", checkpoint=ckpt,
-                 meta={"corruption": "fog", "severity": 1})
+                 meta={"corruption": "fog", "severity": 1, **info})
         cfg_path = tmp_path / name / ".hydra" / "config.yaml"
         cfg = json.loads(cfg_path.read_text())
         cfg["sim"]["height"] = cfg["sim"]["width"] = 32  # the learned agents' view size differs from orb's
@@ -243,7 +249,124 @@ def test_learned_agents_are_rows_named_by_their_checkpoint(tmp_path):
     text = corruption_table(find_runs(tmp_path))
     assert text.count("## ") == 1
     assert table_rows(text, "severity 1")[1:] == [
+        "| dagger direct (checkpoint=a/checkpoints/best.pth) | 1.00 |",
+        "| dagger direct (checkpoint=b/checkpoints/best.pth) | 2.00 |",
         "| orb | 3.00 |",
-        "| ppo (checkpoint=a/checkpoints/best.pth) | 1.00 |",
-        "| ppo (checkpoint=b/checkpoints/best.pth) | 2.00 |",
+        "| ppo early_fusion | 4.00 |",
     ]
+
+
+# ------------------------------------------------------------------------------ runs that never stop
+def test_runs_without_stops_are_never_picked(tmp_path, collect, capsys):
+    """d_thresh=10 has the lowest eps but no episode stopped in it (every one ran to T): it is marked in the
+    table and the config takes the best run that stopped; a difficulty where no run stopped is named on
+    stderr and left out of the config."""
+    fake_run(tmp_path, "10", {"easy": 1.0, "hard": 50.0}, d_thresh=10, stop={"easy": 0.0, "hard": 0.0}, max_steps=300)
+    fake_run(tmp_path, "30", {"easy": 4.0, "hard": 60.0}, d_thresh=30, stop={"easy": 0.5, "hard": 0.0}, max_steps=300)
+    fake_run(tmp_path, "inf", {"easy": 9.0, "hard": 70.0}, d_thresh="inf", stop={"easy": 1.0, "hard": 0.0}, max_steps=300)
+    text = threshold_table(find_runs(tmp_path))
+    assert "T = 300" in text.splitlines()[0]
+    assert table_rows(text, "toy / val") == [
+        "| easy | orb | 1.00 (no stop) | **4.00** | 9.00 |",
+        "| hard | orb | 50.00 (no stop) | 60.00 (no stop) | 70.00 (no stop) |",
+    ]
+    assert collect([str(tmp_path)]) == 0
+    out = capsys.readouterr()
+    assert "hard" in out.err and "no run stopped" in out.err
+    tuned = tmp_path / "orb_tuned_toy.yaml"  # into the sweep folder, never into the source tree
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(tuned)
+    assert dict(cfg.d_thresh) == {"easy": 30} and "Not tuned" in tuned.read_text() and "hard" in tuned.read_text()
+    assert "configs/agent/" in out.out
+
+
+def test_no_run_stops_writes_no_config(tmp_path, collect, capsys):
+    for t in (10, 20):
+        fake_run(tmp_path, str(t), {"easy": float(t)}, d_thresh=t, stop={"easy": 0.0})
+    assert tuned_thresholds(find_runs(tmp_path)) == {}
+    assert collect([str(tmp_path)]) == 0
+    out = capsys.readouterr()
+    assert "no run stopped" in out.err and "no tuned config written" in out.out
+    assert not list(tmp_path.glob("*.yaml"))
+    assert (tmp_path / "thresholds.md").is_file()
+
+
+def test_tuned_config_is_never_silently_overwritten(tmp_path, collect, capsys):
+    fake_run(tmp_path, "a", {"easy": 1.0}, d_thresh=20)
+    fake_run(tmp_path, "b", {"easy": 2.0}, d_thresh=40)
+    assert collect([str(tmp_path)]) == 0
+    tuned = tmp_path / "orb_tuned_toy.yaml"
+    first = tuned.read_text()
+    assert "easy: 20" in first
+    assert collect([str(tmp_path)]) == 0 and tuned.read_text() == first  # same result: unchanged
+    assert "(unchanged)" in capsys.readouterr().out
+    tuned.write_text("# my edits\n")
+    assert collect([str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "overwrite=true" in err[0] and tuned.read_text() == "# my edits\n"
+    assert collect([str(tmp_path), "overwrite=true"]) == 0 and tuned.read_text() == first
+
+
+# ------------------------------------------------------------------------------ summary.md headers
+def _fake_eval_dir(root: Path, overrides: list[str]) -> tuple[Path, str]:
+    """A run folder as tools/eval.py leaves it before writing results: .hydra/hydra.yaml (config name and
+    group choices) and the resolved config text."""
+    from omegaconf import OmegaConf
+
+    from findview_baselines.cli import compose_config
+
+    cfg = compose_config("eval", overrides, return_hydra_config=True)
+    (root / ".hydra").mkdir(parents=True)
+    choices = {k: v for k, v in OmegaConf.to_container(cfg.hydra.runtime.choices).items()}
+    OmegaConf.save({"hydra": {"job": {"config_name": "eval"}, "runtime": {"choices": choices}}}, root / ".hydra" / "hydra.yaml")
+    plain = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    return root, OmegaConf.to_yaml(plain, resolve=True)
+
+
+def test_summary_header_lists_every_non_default_setting(tmp_path):
+    from findview_baselines.evaluation.results import run_settings, summary_markdown
+
+    default_dir, default_cfg = _fake_eval_dir(tmp_path / "default", ["agent=sift"])
+    changed_dir, changed_cfg = _fake_eval_dir(
+        tmp_path / "changed", ["agent=sift", "agent.d_thresh=20", "sim=fov60", "task.max_steps=300", "progress=false"])
+    assert run_settings(default_dir, default_cfg) == ["agent=sift"]  # orb is eval's default agent
+    # the group choice once; its own values (sim.fov=60, height 192) are the defaults of fov60, not listed
+    assert run_settings(changed_dir, changed_cfg) == [
+        "agent=sift", "sim=fov60", "agent.d_thresh=20", "progress=false", "task.max_steps=300"]
+    summary = {"easy": metrics(1.0), "runtime": {"agent_fps": 1.0, "env_fps": 1.0}}
+    a = summary_markdown(summary, "sift", {"settings": run_settings(default_dir, default_cfg)})
+    b = summary_markdown(summary, "sift", {"settings": run_settings(changed_dir, changed_cfg)})
+    assert a != b and "`agent.d_thresh=20`" in b and "`task.max_steps=300`" in b
+
+
+def test_learned_agent_summary_is_titled_by_trainer_and_variant():
+    from findview_baselines.evaluation.results import summary_markdown
+
+    summary = {"easy": metrics(1.0), "runtime": {"agent_fps": 1.0, "env_fps": 1.0}}
+    meta = {"dataset": "toy", "split": "test", "checkpoint": "runs/q/checkpoints/best.pth", "trainer": "dagger", "variant": "direct"}
+    assert summary_markdown(summary, "ppo", meta).splitlines()[0] == "# dagger direct on toy / test"
+    assert summary_markdown(summary, "sift", {"dataset": "toy", "split": "test"}).splitlines()[0] == "# sift on toy / test"
+
+
+def test_a_joblib_sweep_passes_the_tools_checks():
+    """`-m hydra/launcher=joblib hydra.launcher.n_jobs=2 ...` (hydra-joblib-launcher, a requirement) composes
+    and validates every job like the basic launcher (run_tool's pre-check returns instead of exiting)."""
+    from findview_baselines.cli import compose_config, precheck
+
+    argv = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "agent=sift", "agent.d_thresh=20,inf", "split=val"]
+    precheck("eval", "eval", argv)
+    cfg = compose_config("eval", argv[1:3] + ["agent=sift", "agent.d_thresh=20"], return_hydra_config=True)
+    assert "JoblibLauncher" in cfg.hydra.launcher._target_ and cfg.hydra.launcher.n_jobs == 2
+
+
+def test_help_lists_no_schemas_or_tuned_files():
+    """`--help` lists the config groups a user picks from: no schema entries (`base_ppo`, ...) and no
+    tuned configs (collect_results writes those into the sweep folder, never into configs/)."""
+    proc = subprocess.run([sys.executable, str(REPO / "tools" / "train.py"), "--help"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    groups = proc.stdout.split("== Configuration groups ==")[1].split("== Config ==")[0]
+    listed = {line.split(":")[0]: line.split(":", 1)[1] for line in groups.splitlines() if ":" in line and "(group=option)" not in line}
+    assert {"agent", "dataset", "sim", "trainer"} <= set(listed)
+    assert "base_" not in groups and "_tuned_" not in groups
+    assert [o.strip() for o in listed["trainer"].split(",")] == ["dagger", "ppo"]

@@ -12,7 +12,6 @@ import torch
 
 from findview.dataset import EpisodeSampler, ImageEntry
 from findview.geometry import l1_distance, wrap_yaw
-from findview.metrics import aggregate
 from findview.sim import PanoramaBank, Simulator
 from findview.task import Action, FindViewEnv, StaticEpisodeSource
 from findview.task.oracle import (
@@ -422,31 +421,46 @@ def test_resume_rejects_a_different_model_or_trainer(panoramas) -> None:
         trainer.load_state_dict({"signature": state["signature"], "policy": state["policy"]})
 
 
-def run_greedy(env: FindViewEnv, policy: Policy | None, seed: int = 0) -> list[dict]:
-    """Greedy policy (or uniform random actions when ``policy`` is None) until the static source ends."""
-    g = torch.Generator().manual_seed(seed)
+def teacher_forced_agreement(env: FindViewEnv, policy: Policy) -> tuple[float, float]:
+    """Walk the oracle's actions over a static source and ask the policy (greedy, its GRU fed by that walk) at
+    every step: ``(share of steps where its action lies in the optimal set, share of steps where it says STOP
+    although STOP is not optimal)``. Both are properties of the policy on fixed states, not of a trajectory it
+    chose, so they do not amplify a small numerical difference the way a greedy rollout can."""
     obs = env.reset()
-    hidden = None if policy is None else policy.initial_hidden(env.num_envs)
-    records: list[dict] = []
+    hidden = policy.initial_hidden(env.num_envs)
+    good = total = false_stops = 0
     with torch.no_grad():
         while bool(env.active.any()):
-            if policy is None:
-                actions = torch.randint(0, 5, (env.num_envs,), generator=g)
-            else:
-                masks = (~env.new_episode).float()
-                actions, _, _, hidden = policy.act(obs, hidden, masks, deterministic=True)
-            obs, _, _, infos = env.step(actions)
-            records += [i for i in infos if i is not None]
-    return records
+            active = env.active.clone()
+            actions, _, _, hidden = policy.act(obs, hidden, (~env.new_episode).float(), deterministic=True)
+            optimal = optimal_action_mask_for(env)
+            good += int((optimal.gather(1, actions[:, None]).squeeze(1) & active).sum())
+            false_stops += int(((actions == STOP) & ~optimal[:, STOP] & active).sum())
+            total += int(active.sum())
+            obs, _, _, _ = env.step(oracle_actions_for(env))
+    return good / total, false_stops / total
 
 
-def test_dagger_learns_a_trivial_world(panoramas) -> None:
-    """Yaw-only colour wheels, easy starts, 32x32 views: a few thousand labelled steps give a greedy
-    agent that ends far closer to the target than a random one, on episodes of a held-out seed."""
-    torch.manual_seed(0)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_dagger_learns_a_trivial_world(panoramas, seed) -> None:
+    """Yaw-only colour wheels, easy starts, 32x32 views: 30 DAgger updates (3,840 labelled steps) teach the
+    policy the oracle's moves on episodes of a held-out seed.
+
+    Numerically sensitive (docs/NUMERICS.md): the weights after training differ in the last bits between CPUs
+    and thread counts. The assertion is on the teacher-forced agreement with the optimal action set, measured
+    on seeds 0-8 with 1 thread and seeds 1, 5, 9 with 2 threads while tuning: 0.885-0.993 after training (untrained
+    0.15-0.55; always moving towards one side agrees on about half the steps), so the bar of 0.8 leaves a margin on every seed; false
+    stops stayed below 0.2% of steps. Greedy rollouts were
+    not used: a policy without the search memory can circle between two poses, which turns a tiny difference
+    in the weights into a 30-degree difference in the result."""
+    torch.manual_seed(seed)
     size, max_steps = 32, 80
-    env = sampled_env(panoramas, 8, size, 0, max_steps, seed=3)
-    policy = Policy(size, size, variant="correlation", hidden_size=32)
+    env = sampled_env(panoramas, 8, size, 0, max_steps, seed=3 + seed)
+    policy = Policy(size, size, variant="direct", hidden_size=64, fine_shifts=1, fine_scales=2)
+    sampler = EpisodeSampler(panoramas, 90, seed=777, pitch_bound=0, max_steps=max_steps)
+    episodes = [sampler.sample("easy") for _ in range(24)]
+    static = lambda: make_env(panoramas, 8, size, 0, max_steps, StaticEpisodeSource(episodes))  # noqa: E731
+    before, _ = teacher_forced_agreement(static(), policy)
     cfg = DAggerConfig(
         lr=2e-3, rollout_steps=16, seq_len=8, buffer_size=4096, batch_sequences=16, epochs=4.0, beta_decay_updates=10
     )
@@ -454,16 +468,7 @@ def test_dagger_learns_a_trivial_world(panoramas) -> None:
     trainer.start()
     for _ in range(30):
         trainer.train_update()
-
-    sampler = EpisodeSampler(panoramas, 90, seed=777, pitch_bound=0, max_steps=max_steps)
-    episodes = [sampler.sample("easy") for _ in range(24)]
-    start_eps = float(np.mean([l1_distance(e.init_pitch, e.init_yaw, e.target_pitch, e.target_yaw) for e in episodes]))
-    static = lambda: make_env(panoramas, 8, size, 0, max_steps, StaticEpisodeSource(episodes))  # noqa: E731
-    trained = aggregate(run_greedy(static(), policy))
-    random_agent = aggregate(run_greedy(static(), None))
-    print(f"\nDAgger greedy eps {trained['eps']:.2f} stop {trained['omega_stop']:.2f} | "
-          f"random {random_agent['eps']:.2f} "
-          f"| stop at once {start_eps:.2f}")
-    assert trained["episodes"] == 24
-    assert trained["eps"] < 0.35 * random_agent["eps"]
-    assert trained["eps"] < 0.35 * start_eps
+    after, false_stops = teacher_forced_agreement(static(), policy)
+    print(f"\nDAgger seed {seed}: teacher-forced agreement {before:.3f} -> {after:.3f}, false stops {false_stops:.4f}")
+    assert after >= 0.8
+    assert false_stops <= 0.02

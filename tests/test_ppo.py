@@ -353,8 +353,29 @@ def test_scheduler_step_and_state_dict() -> None:
 
     resumed = DifficultyScheduler(999, mode="bounded")
     resumed.load_state_dict(sched.state_dict())
-    assert resumed.state_dict() == {"total_updates": 300, "num_levels": 3, "mode": "unbounded", "current_level": 2}
+    assert resumed.state_dict() == {
+        "total_updates": 300, "num_levels": 3, "mode": "unbounded", "start_level": 1, "current_level": 2
+    }
     assert resumed.level(200) == 3
+
+
+def test_scheduler_can_start_at_any_level() -> None:
+    """start_level 2 of 3 over 300 updates: two phases of 150 (levels 2, 3); start_level 3: hard throughout;
+    a state saved before the key existed resumes at start_level 1."""
+    two = DifficultyScheduler(300, start_level=2)
+    assert two.current_level == 2
+    assert {u: two.level(u) for u in (0, 149, 150, 299, 400)} == {0: 2, 149: 2, 150: 3, 299: 3, 400: 3}
+    hard = DifficultyScheduler(300, start_level=3)
+    assert {hard.level(u) for u in range(0, 300, 7)} == {3}
+    assert hard.step(0) is False and hard.current_level == 3
+    resumed = DifficultyScheduler(300)
+    resumed.load_state_dict(hard.state_dict())
+    assert resumed.level(0) == 3
+    old = {"total_updates": 300, "num_levels": 3, "mode": "unbounded", "current_level": 2}
+    resumed.load_state_dict(old)
+    assert resumed.start_level == 1 and resumed.level(0) == 1
+    with pytest.raises(ValueError, match="start_level"):
+        DifficultyScheduler(300, num_levels=2, start_level=3)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -104,7 +104,7 @@ def test_render_episode_tool_from_dataset(tmp_path, one_image_ds):
     png = tmp_path / "fig" / "episode.png"
     proc = subprocess.run(
         [sys.executable, str(REPO / "tools" / "render_episode.py"), "dataset=folder", f"dataset.root={one_image_ds['root']}",
-         f"dataset.out_dir={one_image_ds['out']}", "split=test", "episode_index=2", "sim.height=64", "sim.width=64",
+         f"dataset.out_dir={one_image_ds['out']}", "dataset.split=[0,0,1]", "split=test", "episode_index=2", "sim.height=64", "sim.width=64",
          f"out={png}", f"hydra.run.dir={tmp_path / 'run'}"],
         capture_output=True, text=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=120,
     )
@@ -122,7 +122,7 @@ def test_render_episode_index_out_of_range(tmp_path, one_image_ds):
     cfg = compose_config(
         "render_episode",
         ["dataset=folder", f"dataset.root={one_image_ds['root']}", f"dataset.out_dir={one_image_ds['out']}",
-                       "episode_index=99"],
+         "dataset.split=[0,0,1]", "episode_index=99"],
     )
     with pytest.raises(EvalError, match=r"episode_index=99.*3 episodes"):
         _tool_module().render(cfg, tmp_path, {"dataset": "folder"}, [])
@@ -150,3 +150,31 @@ def test_render_episode_explicit_rotations(tmp_path, small_pano):
     cfg = compose_config("render_episode", [f"image={small_pano}", "init=[80,0]", "target=[0,0]"])
     with pytest.raises(EvalError, match="pitch 80"):
         tool.render(cfg, tmp_path, {}, [])
+
+
+@pytest.mark.parametrize("size,shown", [((64, 64), (256, 256)), ((48, 64), (288, 384)), ((256, 256), (256, 256))])
+def test_video_frames_show_views_at_least_256_high(tmp_path, small_pano, size, shown):
+    """Small agent views are enlarged by a whole factor (nearest neighbour) to >= 256 px high; the panorama
+    strip beside them has the shown view height. A 64 x 64 view gave 256 x 64 frames before."""
+    from findview.imageio import load_panorama
+    from findview_baselines.evaluation.viz import render_views, write_video
+
+    pano = load_panorama(small_pano)
+    h, w = size
+    rots = [(0, 0), (0, 1), (1, 1)]
+    path = write_video(tmp_path / "v.mp4", pano, rots, (5, 10), 90.0, h, w)
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+    sh, sw = shown
+    assert len(frames) == len(rots)
+    assert frames[0].shape == (sh, 2 * sw + 2 * sh, 3)
+    # the first tile is the first view, enlarged (compared loosely: mp4v is lossy)
+    view = render_views(pano, rots[:1], 90.0, h, w, "bilinear")[0]
+    big = cv2.resize(view, (sw, sh), interpolation=cv2.INTER_NEAREST).astype(np.float32)
+    inner = (slice(4, sh - 4), slice(4, sw - 4))  # inside the coloured border
+    assert np.abs(frames[0][inner].astype(np.float32) - big[inner]).mean() < 12

@@ -80,7 +80,8 @@ def test_sigterm_saves_refuses_a_second_run_and_resumes_without_gaps(panorama_fo
     last = err.strip().splitlines()[-1]
     assert f"stopped at update {saved}" in last and "latest.pth" in last and "resume" in last
     assert lock_holder(run_dir) is None
-    assert tb_steps(run_dir, "loss/policy_loss") == list(range(1, saved + 1))
+    per_update = 2 * 8  # TensorBoard's x-axis is env steps: 2 envs x 8 rollout steps per update
+    assert tb_steps(run_dir, "loss/policy_loss") == [per_update * k for k in range(1, saved + 1)]
 
     done = subprocess.run(
         _tool_args(panorama_folder, dataset_out, run_dir, "trainer.num_updates=100000", "trainer.stop_after=2"),
@@ -90,7 +91,7 @@ def test_sigterm_saves_refuses_a_second_run_and_resumes_without_gaps(panorama_fo
     assert f"resumed {run_dir} at update {saved}" in done.stdout + done.stderr
     assert load(run_dir / "checkpoints" / "latest.pth")["update"] == saved + 2
     steps = tb_steps(run_dir, "loss/policy_loss")
-    assert sorted(steps) == list(range(1, saved + 3)) and len(set(steps)) == len(steps)
+    assert sorted(steps) == [per_update * k for k in range(1, saved + 3)] and len(set(steps)) == len(steps)
 
 
 def test_signal_during_a_rollout_abandons_the_update_and_resumes_exactly(
@@ -209,3 +210,28 @@ def test_a_training_that_fails_on_its_input_leaves_no_run_folder(tmp_path: Path)
     assert done.returncode == 2, done.stderr[-2000:]
     assert done.stderr.strip().splitlines()[-1].startswith("train: error: ") and "nowhere" in done.stderr
     assert not run_dir.exists()
+
+
+def test_sigint_skips_a_scheduled_validation_and_writes_latest(make_cfg, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGINT while update 3 (a validation update: val_interval 3) trains: the update is finished, the
+    validation is skipped (no best.pth, no val scalars), latest.pth holds update 3 and the run stops."""
+    from findview_baselines.rl import ppo_trainer
+    from findview_baselines.rl.run import ValidationCallback
+
+    original = ppo_trainer.PPOTrainer.train_update
+
+    def train_update(self, *args, **kwargs):
+        stats = original(self, *args, **kwargs)
+        if self.update == 3:
+            os.kill(os.getpid(), signal.SIGINT)  # after the rollout: the update completes
+        return stats
+
+    validated: list[int] = []
+    monkeypatch.setattr(ppo_trainer.PPOTrainer, "train_update", train_update)
+    monkeypatch.setattr(ValidationCallback, "validate", lambda self, ctx: validated.append(ctx.algo.update) or {})
+    with pytest.raises(Interrupted) as info:
+        train(make_cfg(), tmp_path)
+    assert info.value.signum == signal.SIGINT and "stopped at update 3" in str(info.value)
+    assert validated == []
+    assert load(tmp_path / "checkpoints" / "latest.pth")["update"] == 3
+    assert not (tmp_path / "checkpoints" / "best.pth").exists()

@@ -131,8 +131,7 @@ def test_val_episode_cap_spreads_over_difficulties() -> None:
 
 def test_cli_resumes_the_same_run_folder(panorama_folder: Path, dataset_out: Path, tmp_path: Path) -> None:
     """tools/train.py with Hydra overrides: the run folder holds .hydra/ and checkpoints; re-running resumes."""
-    if not (REPO / "configs" / "dataset" / "folder.yaml").is_file():
-        pytest.skip("configs/dataset/folder.yaml not available")
+    assert (REPO / "configs" / "dataset" / "folder.yaml").is_file(), "configs/dataset/folder.yaml is missing"
     run_dir = tmp_path / "cli_run"
     args = [
         sys.executable, str(REPO / "tools" / "train.py"), "agent=ppo", "dataset=folder",

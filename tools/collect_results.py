@@ -16,12 +16,18 @@ the values that tell it apart. Two runs with identical settings in one cell are 
 ``layout=thresholds`` (default): the d_thresh search of the paper's Tables 13-15 (rows difficulty x
 agent, columns the thresholds, cells the mean localization error eps, the best of each row in bold),
 written to ``<sweep folder>/thresholds.md`` (or ``table=<path>``); then, per agent and data set, the best
-``d_thresh`` of each difficulty (lowest eps; ties: higher SPL, then the smaller threshold) is written as
-the agent config ``configs/agent/<agent>_tuned_<dataset>.yaml`` (or ``out=<path>``), which the benchmark
-uses with ``agent=<agent>_tuned_<dataset>``; runs of several settings (e.g. ``-m sim=fov90,fov60``) give
-one config per setting, named with a suffix (``<agent>_tuned_<dataset>_fov60_height192.yaml``). Only
-validation-split runs may pick thresholds: with test runs only, the tool stops with status 2 unless
-``allow_test_tuning=true``.
+``d_thresh`` of each difficulty (lowest eps among the runs in which some episode ended by ``stop``; ties:
+higher SPL, then the smaller threshold) is written as the agent config
+``<sweep folder>/<agent>_tuned_<dataset>.yaml`` (or ``out=<path>``); copy it into ``configs/agent/`` and
+the benchmark uses it with ``agent=<agent>_tuned_<dataset>``. Runs of several settings (e.g.
+``-m sim=fov90,fov60``) give one config per setting, named with a suffix
+(``<agent>_tuned_<dataset>_fov60_height192.yaml``). Only validation-split runs may pick thresholds: with
+test runs only, the tool stops with status 2 unless ``allow_test_tuning=true``.
+
+A run in which no episode stopped (``omega_stop`` 0: every episode ran to ``T``) is marked ``(no stop)``
+in the table and never picked: a difficulty where no run stopped is said on stderr and left out of the
+config (it keeps the base config's threshold); an agent where no run stopped at all gets no config. An
+existing config file with other contents is never replaced unless ``overwrite=true`` (status 2).
 
 ``layout=corruption``: the paper's Tables 8-11 (eps averaged over the three difficulties, one column per
 corruption grouped by category with ``clear`` first, one row per agent, one table per severity), written
@@ -30,7 +36,7 @@ severity come from its ``run.json`` (keys ``corruption``, ``severity``) or its c
 
 Options are ``key=value`` (or ``--key value``): ``layout``, ``out``, ``table``, ``metric`` (``eps``; also
 ``spl``, ``omega_perf``, ``omega_stop``: the tuned config always minimises eps), ``write_config``
-(``true``), ``allow_test_tuning`` (``false``). Exit status 2 with one line on stderr for user errors.
+(``true``), ``allow_test_tuning`` (``false``), ``overwrite`` (``false``). Exit status 2 with one line on stderr for user errors.
 """
 
 from __future__ import annotations
@@ -51,7 +57,6 @@ from findview_baselines.evaluation.results import (
     tuned_thresholds,
 )
 
-REPO = Path(__file__).resolve().parents[1]
 METRICS = ("eps", "spl", "omega_perf", "omega_stop")
 LAYOUTS = ("thresholds", "corruption")
 TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
@@ -82,12 +87,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(description="Collect a tools/eval.py multirun into the paper's tables.")
     p.add_argument("multirun_dir", help="the multirun (sweep) folder of tools/eval.py -m")
     p.add_argument("--layout", default="thresholds", choices=LAYOUTS, help="thresholds (Tables 13-15) or corruption (Tables 8-11)")
-    p.add_argument("--out", default=None, help="tuned agent config path (default configs/agent/<agent>_tuned_<dataset>.yaml)")
+    p.add_argument("--out", default=None, help="tuned agent config path (default <multirun_dir>/<agent>_tuned_<dataset>.yaml)")
     p.add_argument("--table", default=None, help="markdown table path (default <multirun_dir>/thresholds.md or corruptions.md)")
     p.add_argument("--metric", default="eps", choices=METRICS, help="metric shown in the table (default eps)")
     p.add_argument("--write_config", "--write-config", default="true", help="write the tuned agent config (true/false)")
     p.add_argument("--allow_test_tuning", "--allow-test-tuning", nargs="?", const="true", default="false",
                    help="allow picking d_thresh from non-validation (test) runs (true/false)")
+    p.add_argument("--overwrite", nargs="?", const="true", default="false",
+                   help="replace an existing tuned config file with other contents (true/false)")
     return p.parse_args(words)
 
 
@@ -103,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     write_config = _bool("write_config", args.write_config)
     allow_test = _bool("allow_test_tuning", args.allow_test_tuning)
+    overwrite = _bool("overwrite", args.overwrite)
     root = Path(args.multirun_dir)
     warn = lambda m: print(f"warning: {m}", file=sys.stderr)  # noqa: E731
     runs = find_runs(root, warn=warn)
@@ -122,7 +130,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.layout != "thresholds" or not write_config:
         return 0
 
-    best = tuned_thresholds(runs, allow_test_tuning=allow_test)
+    best = tuned_thresholds(runs, allow_test_tuning=allow_test, warn=warn)
     for (label, dataset, _), (_, group) in best.items():
         agents = {r.agent for r in group.runs if r.dataset == dataset}
         if label not in agents:
@@ -130,20 +138,33 @@ def _run(args: argparse.Namespace) -> int:
                 f"runs of {label.split(' (')[0]} differ in agent settings ({label}): a tuned config extends one "
                 "agent config; collect each setting's folder separately, or pass write_config=false"
             )
+    if not best:
+        print("no tuned config written: no agent stopped in any episode of any run (see the warnings)")
+        return 0
     if args.out and len(best) > 1:
         names = ", ".join(f"{a}/{d}" + (f"/{s}" if s else "") for a, d, s in best)
         raise CollectError(f"out= names one file but the runs hold several agents / data sets / settings ({names})")
+    files: list[tuple[Path, str, str]] = []
     for (agent, dataset, suffix), (thresholds, group) in best.items():
         name = f"{agent}_tuned_{dataset}" + (f"_{suffix}" if suffix else "")
-        path = Path(args.out) if args.out else REPO / "configs" / "agent" / f"{name}.yaml"
+        path = Path(args.out) if args.out else root / f"{name}.yaml"
         settings = ", ".join(f"{k}={v}" for k, v in group.context if k not in ("split", "dataset.name"))
+        evaluated = {d for r in group.runs if r.agent == agent for d in r.difficulties()}
         text = tuned_config_text(agent, dataset, thresholds, source=str(root), split=group.split,
-                                 name=path.stem, settings=settings)
-        write_text(path, text)
+                                 name=path.stem, settings=settings, untuned=sorted(evaluated - set(thresholds)))
         picks = ", ".join(f"{d}={format_threshold(t)}" for d, t in thresholds.items())
         tag = "" if all(r.is_val for r in group.runs) else " (from test-split runs: allow_test_tuning=true)"
         where = f" ({settings})" if settings else ""
-        print(f"best d_thresh for {agent} on {dataset}{where}: {picks} -> {path}{tag}")
+        files.append((path, text, f"best d_thresh for {agent} on {dataset}{where}: {picks} -> {path}{tag}"))
+    for path, text, _ in files:  # refuse before writing anything
+        if path.is_file() and not overwrite and path.read_text() != text:
+            raise CollectError(f"{path} exists with other contents; move it away or pass overwrite=true")
+    for path, text, line in files:
+        unchanged = path.is_file() and path.read_text() == text
+        write_text(path, text)
+        print(line + (" (unchanged)" if unchanged else ""))
+    if not args.out:
+        print(f"to use a tuned config, copy it into configs/agent/: cp {files[0][0]} configs/agent/")
     return 0
 
 

@@ -12,8 +12,11 @@ Examples::
 The run folder (``hydra.run.dir``; named after the agent, or after the checkpoint's run) receives
 ``episodes.jsonl`` (one record per episode), ``summary.json``, ``summary.md`` (the paper's table layout),
 ``run.json``, ``config_resolved.yaml`` and ``videos/`` (``video=N``), all written atomically once every
-episode is done. Ctrl-C writes nothing and exits with status 130; problems with the input print one line
-and exit with status 2.
+episode is done, and ``summary.md`` (the result table) is printed on stdout at the end. ``checkpoint=``
+implies ``agent=ppo`` (so ``agent.revisit_penalty=0`` and the other learned-agent keys are valid with it).
+Ctrl-C writes nothing and exits with status 130; problems with the input (data made from another root or
+other settings, an unusable checkpoint, an output folder that cannot be written) print one line and exit
+with status 2.
 """
 
 from __future__ import annotations
@@ -27,7 +30,12 @@ def main(cfg: DictConfig, ctx: ToolContext) -> None:
     from findview_baselines.evaluation.evaluate import evaluate
 
     evaluate(cfg, ctx.run_dir, choices=ctx.choices, overrides=ctx.overrides)
+    table = ctx.run_dir / "summary.md"
+    if table.is_file():
+        print(table.read_text(), flush=True)
 
 
 if __name__ == "__main__":
-    run_tool("eval", main)
+    from findview_baselines.evaluation.evaluate import checkpoint_implies_agent
+
+    run_tool("eval", main, implied=checkpoint_implies_agent)

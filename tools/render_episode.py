@@ -23,7 +23,7 @@ from omegaconf import DictConfig
 
 from findview_baselines.cli import ToolContext, run_tool
 
-log = logging.getLogger("findview.render")
+log = logging.getLogger("findview.render_episode")
 
 
 def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
@@ -32,6 +32,7 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     from findview.imageio import load_panorama
     from findview.geometry import wrap_yaw
     from findview_baselines.evaluation.evaluate import EvalError, resolve_episodes
+    from findview_baselines.rl.checkpoint import check_writable
     from findview_baselines.evaluation.viz import episode_figure, parse_rotation, write_png
 
     fov, height, width = float(cfg.sim.fov), int(cfg.sim.height), int(cfg.sim.width)
@@ -42,10 +43,13 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
         if missing:
             raise EvalError(f"explicit mode needs image=, init= and target=; missing: {', '.join(missing)}")
         image = str(Path(str(cfg.image)).expanduser())
-        init, target = parse_rotation(cfg.init, "init"), parse_rotation(cfg.target, "target")
+        try:
+            init, target = parse_rotation(cfg.init, "init"), parse_rotation(cfg.target, "target")
+        except ValueError as err:  # a value typed on the command line
+            raise EvalError(str(err)) from None
         name = Path(image).stem
     else:
-        episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides)
+        episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides, logger=log)
         k = int(cfg.episode_index)
         if not 0 <= k < len(episodes):
             raise EvalError(f"episode_index={k} is out of range: {path} holds {len(episodes)} episodes")
@@ -58,8 +62,8 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     target = (target[0], int(wrap_yaw(target[1])))
     try:
         pano = load_panorama(image)
-    except (OSError, ValueError) as err:
-        raise EvalError(str(err)) from err
+    except OSError as err:  # PanoramaError (a bad image) is a user error of its own
+        raise EvalError(f"{image}: {err.strerror or err}") from err
     fig = episode_figure(
         pano, init, target, fov, height, width, str(cfg.sim.mode), cfg.get("pano_height"), bool(cfg.get("labels", True))
     )
@@ -67,6 +71,7 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     out = Path(str(cfg.out)).expanduser() if cfg.get("out") else run_dir / f"{safe}.png"
     if out.suffix.lower() != ".png":
         raise EvalError(f"out= must name a .png file, got {out}")
+    check_writable(out.parent, "output folder of out=" if cfg.get("out") else "run folder (hydra.run.dir)")
 
     write_png(out, fig)
     log.info("episode %s: init %s, target %s -> %s (%dx%d)", name, init, target, out, fig.shape[1], fig.shape[0])

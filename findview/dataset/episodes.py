@@ -2,8 +2,15 @@
 
 For a split, a FoV ``F`` and ``K = episodes_per_image``, the file holds, for each difficulty in
 ``easy, medium, hard`` (in that order), for each image of the split (in ``splits.json`` order), ``K``
-episodes. The rotations come from :func:`findview.dataset.sampler.sample_rotations` with a generator
-seeded by ``(seed, split, F, difficulty)``, so the same inputs always give a byte-identical file.
+episodes. The rotations of the ``k``-th episode of every image come from one call of
+:func:`findview.dataset.sampler.sample_rotations` (one rotation per image, in image order) with a
+generator seeded by ``(seed, split, F, difficulty)`` for ``k = 0`` and ``(seed, split, F, difficulty, k)``
+for ``k > 0``, so the same inputs always give a byte-identical file, and the first ``k`` episodes per
+image per difficulty of a file made with ``K >= k`` are exactly the file made with ``k`` (same ids,
+seeds and rotations): tools that need fewer episodes per image than a file holds take that subset
+(:func:`load_episodes` ``episodes_per_image=``; the header's ``nested: true`` marks files made this
+way). Files with ``K = 1`` are those of the earlier layout; files with ``K > 1`` made before were
+sampled in one stream and are not nested (their fingerprint differs, so they are rebuilt).
 Episode ids are ``"<split>-fov<F:g>-<difficulty>-<image index:06d>-<k>"``; the episode seed is
 :func:`findview.dataset.sampler.derive_seed` of ``(seed, split, F, id)``.
 
@@ -26,11 +33,14 @@ import numpy as np
 from findview.dataset.difficulty import check_fov, check_hard_rule, check_pitch_bound
 from findview.dataset.discovery import DatasetError, ImageEntry
 from findview.dataset.sampler import DEFAULT_MAX_TRIES, derive_seed, sample_rotations
-from findview.dataset.splits import MAKE_DATASET_HINT, SPLITS, relative_image_path
+from findview.dataset.splits import MAKE_DATASET_HINT, SPLITS, MissingDataFile, relative_image_path
 from findview.episode import DIFFICULTIES, Episode
 from findview.utils import read_json, write_text
 
-__all__ = ["episode_file", "fov_tag", "make_static_episodes", "write_episode_file", "load_episodes", "read_episode_file"]
+__all__ = [
+    "episode_file", "episode_index", "fov_tag", "make_static_episodes", "write_episode_file", "load_episodes",
+    "read_episode_file",
+]
 
 
 def fov_tag(fov: float) -> str:
@@ -71,7 +81,8 @@ def make_static_episodes(
         pitch_bound, max_steps, hard_rule: the sampling rules (docs/TASK.md, Difficulties).
 
     Returns:
-        ``len(difficulties) * len(images) * K`` episodes, difficulty-major, then image, then k.
+        ``len(difficulties) * len(images) * K`` episodes, difficulty-major, then image, then k; the
+        episodes with ``k < k'`` are those of ``episodes_per_image=k'`` (module docstring).
     """
     fov = check_fov(fov)
     pitch_bound = check_pitch_bound(pitch_bound)
@@ -83,13 +94,17 @@ def make_static_episodes(
     tag = fov_tag(fov)
     episodes: list[Episode] = []
     for d in difficulties:
-        rng = np.random.default_rng(
-            [int(seed), split_code, int(round(fov * 1000)), DIFFICULTIES.index(d), 0x46565354]
-        )
-        rot = sample_rotations(d, len(images) * k_per, rng, fov, pitch_bound, max_steps, hard_rule, max_tries)
+        base = [int(seed), split_code, int(round(fov * 1000)), DIFFICULTIES.index(d), 0x46565354]
+        # one stream per k (k = 0: the stream of the K = 1 files), so that a file's first k episodes per
+        # image are the file made with K = k
+        rots = [
+            sample_rotations(d, len(images), np.random.default_rng(base + ([k] if k else [])), fov, pitch_bound,
+                             max_steps, hard_rule, max_tries)
+            for k in range(k_per)
+        ]
         for i, im in enumerate(images):
             for k in range(k_per):
-                r = rot[i * k_per + k]
+                r = rots[k][i]
                 eid = f"{split}-fov{tag}-{d}-{i:06d}-{k}"
                 episodes.append(
                     Episode(
@@ -156,24 +171,63 @@ def read_episode_file(path: str | os.PathLike) -> dict[str, Any]:
         f"Make it with: python tools/make_dataset.py dataset=<name> [dataset.root=<folder>] "
         f"(dataset.episode_fovs must include the FoV, dataset.splits_to_make the split)"
     )
-    doc = read_json(path, "episode file", hint)
+    try:
+        doc = read_json(path, "episode file", hint)
+    except FileNotFoundError as err:
+        raise MissingDataFile(str(err)) from None
+    except ValueError as err:
+        raise DatasetError(f"{err}. {MAKE_DATASET_HINT}") from None
     if not isinstance(doc, dict) or "episodes" not in doc:
         raise DatasetError(f"{path} is not a findview episode file (no 'episodes'). {MAKE_DATASET_HINT}")
     return doc
 
 
-def load_episodes(path: str | os.PathLike, root: str | os.PathLike | None = None) -> list[Episode]:
+def episode_index(episode_id: str) -> int:
+    """The ``k`` of an episode id ``"<split>-fov<F>-<difficulty>-<image index>-<k>"``."""
+    try:
+        return int(str(episode_id).rsplit("-", 1)[1])
+    except (IndexError, ValueError):
+        raise DatasetError(f"episode id {episode_id!r} does not end in '-<k>' (not made by tools/make_dataset.py)") from None
+
+
+def load_episodes(
+    path: str | os.PathLike, root: str | os.PathLike | None = None, episodes_per_image: int | None = None
+) -> list[Episode]:
     """Episodes of a static episode file, with absolute image paths.
 
     Args:
         path: an ``episodes/<split>_fov<F>.json`` file.
         root: overrides the dataset root recorded in the file (relative image paths are joined to it).
+        episodes_per_image: keep the first ``k`` episodes per image per difficulty (the episodes the file
+            made with ``dataset.episodes_per_image=k`` holds, see the module docstring); ``None``: all.
+
+    Raises:
+        DatasetError: the file holds fewer than ``episodes_per_image`` episodes per image, or more but
+            was not made nested (an older file with ``K > 1``).
     """
     doc = read_episode_file(path)
+    keep: int | None = None
+    if episodes_per_image is not None:
+        have, k = doc.get("episodes_per_image"), int(episodes_per_image)
+        nested = have is not None and (doc.get("nested") is True or int(have) <= 1)
+        if have is None or (int(have) != k and (int(have) < k or not nested)):
+            made = "an unknown number of" if have is None else f"{have}"
+            why = "fewer" if have is not None and int(have) < k else "a file whose first episodes are not that subset"
+            raise DatasetError(
+                f"{path} holds {made} episodes per image per difficulty (dataset.episodes_per_image) but "
+                f"{k} are asked for ({why}); make the file with: python tools/make_dataset.py "
+                f"dataset=<name> dataset.episodes_per_image={k} plus this run's dataset.* overrides"
+            )
+        keep = k if int(have) != k else None
     base = os.path.abspath(os.path.expanduser(root)) if root is not None else str(doc.get("root", ""))
     out = []
     for d in doc["episodes"]:
-        ep = Episode.from_dict(d)
+        try:
+            ep = Episode.from_dict(d)
+        except (KeyError, TypeError, ValueError) as err:
+            raise DatasetError(f"{path}: not a findview episode record ({err}). {MAKE_DATASET_HINT}") from None
+        if keep is not None and episode_index(ep.episode_id) >= keep:
+            continue
         image = ep.image if os.path.isabs(ep.image) else os.path.normpath(os.path.join(base, ep.image))
         out.append(dataclasses.replace(ep, image=image))
     return out

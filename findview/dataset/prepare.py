@@ -33,7 +33,9 @@ settings (split, FoV, K, episode seed, hard rule, episode pitch bound, episode m
 :func:`prepare_dataset` reuses a file whose fingerprint matches and rebuilds anything else;
 :func:`ensure_dataset` only writes missing files and raises :class:`DatasetError` (naming the file, the
 differing settings and the ``tools/make_dataset.py`` command) instead of overwriting a file made for
-other settings. Adding images to a folder does not change the fingerprint: run
+other settings, except that an episode file made with more episodes per image than asked for (all else
+equal) serves a tool asking for fewer: the tool reads its first ``K`` per image per difficulty, which are
+the episodes of the file made with ``K`` (:mod:`findview.dataset.episodes`). Adding images to a folder does not change the fingerprint: run
 ``tools/make_dataset.py`` (which always rebuilds) after changing the images.
 """
 from __future__ import annotations
@@ -55,6 +57,7 @@ from findview.episode import DIFFICULTIES
 __all__ = ["DatasetSummary", "dataset_settings", "prepare_dataset", "ensure_dataset", "make_dataset_command", "resolve_path"]
 
 _EPISODE_FORMAT = 1
+_NESTED_LAYOUT = 2
 _ENV_HINT = {"sun360": "SUN360_ROOT", "indoor360": "INDOOR360_ROOT"}
 _ROOT_HINT = {
     "sun360": "your SUN360 folder (the one holding indoor/, outdoor/ and others/)",
@@ -132,20 +135,24 @@ def dataset_settings(cfg: Any) -> dict[str, Any]:
         "episode_fovs": list(raw.get("episode_fovs") if raw.get("episode_fovs") is not None else (90, 60)),
         "episode_pitch_bound": _int_key(raw, "episode_pitch_bound", 60),
         "episode_max_steps": _int_key(raw, "episode_max_steps", 5000),
-        "hard_rule": check_hard_rule(raw.get("hard_rule") or "or"),
+        "hard_rule": raw.get("hard_rule") or "or",
         "splits_to_make": list(raw.get("splits_to_make") if raw.get("splits_to_make") is not None else ("val", "test")),
         "validate": bool(raw.get("validate", True)),
         "workers": raw.get("workers"),
     }
     normalize_ratios(st["split"])
+    try:
+        st["hard_rule"] = check_hard_rule(st["hard_rule"])
+        for f in st["episode_fovs"]:
+            check_fov(f)
+    except ValueError as e:
+        raise DatasetError(f"dataset: {e}") from None
     k = st["episodes_per_image"]
     if isinstance(k, bool) or not isinstance(k, int) or k < 0:
         raise DatasetError(f"dataset.episodes_per_image must be an integer >= 0, got {k!r}")
     bad = [s for s in st["splits_to_make"] if s not in SPLITS]
     if bad:
         raise DatasetError(f"dataset.splits_to_make holds unknown splits {bad}; valid: {', '.join(SPLITS)}")
-    for f in st["episode_fovs"]:
-        check_fov(f)
     try:
         check_pitch_bound(st["episode_pitch_bound"])
     except ValueError as e:
@@ -178,6 +185,20 @@ def _splits_fingerprint(st: dict[str, Any], root: Path) -> str:
     if st["kind"] == "synthetic":
         key["synthetic"] = {k: st[k] for k in ("num_images", "seed", "width", "labels")}
         key["synthetic"]["version"] = GENERATOR_VERSION
+    return _digest(key)
+
+
+def _episodes_fingerprint(splits_fp: str, split: str, fov: float, k: int, st: Mapping[str, Any]) -> str:
+    """The fingerprint of an episode file (its split, FoV and ``K`` plus the episode settings of ``st``)."""
+    # the digest keys are those of the earlier format, so that files made with the defaults stay valid;
+    # K > 1 files are nested since format 1 + layout 2 (findview.dataset.episodes), earlier ones are not
+    key = {
+        "splits": splits_fp, "split": split, "fov": fov, "K": int(k), "seed": st["episode_seed"],
+        "hard_rule": st["hard_rule"], "pitch_bound": st["episode_pitch_bound"], "max_steps": st["episode_max_steps"],
+        "format": _EPISODE_FORMAT,
+    }
+    if int(k) > 1:
+        key["layout"] = _NESTED_LAYOUT
     return _digest(key)
 
 
@@ -255,6 +276,22 @@ def make_dataset_command(st: Mapping[str, Any], **overrides: Any) -> str:
     return "python tools/make_dataset.py " + " ".join(args)
 
 
+def _splits_overrides(doc: Mapping[str, Any], st: Mapping[str, Any], root: Path) -> dict[str, Any]:
+    """``dataset.<key>=<value>`` overrides (this run's values) for the split settings recorded differently
+    in a ``splits.json`` document, so that the suggested command makes the files this run needs."""
+    out: dict[str, Any] = {}
+    if doc.get("root") is not None and doc.get("root") != str(root) and st["kind"] == "synthetic":
+        out["root"] = st["root"]  # make_dataset_command names the root of the other kinds anyway
+    if doc.get("seed") is not None and doc.get("seed") != st["split_seed"]:
+        out["split_seed"] = st["split_seed"]
+    ratios = [float(r) for r in normalize_ratios(st["split"])]
+    if doc.get("ratios") is not None and doc.get("ratios") != ratios:
+        out["split"] = "[" + ",".join(f"{float(r):g}" for r in st["split"]) + "]"
+    if st["kind"] == "sun360" and doc.get("subset") is not None and doc.get("subset") != st["subset"]:
+        out["subset"] = st["subset"]
+    return out
+
+
 def _splits_mismatch(doc: Mapping[str, Any], st: Mapping[str, Any], root: Path) -> str:
     """Which recorded split settings of a ``splits.json`` document differ from ``st`` (for messages)."""
     diffs = []
@@ -275,15 +312,19 @@ def _splits_mismatch(doc: Mapping[str, Any], st: Mapping[str, Any], root: Path) 
     return "; ".join(diffs)
 
 
-def _episodes_mismatch(header: Mapping[str, Any], st: Mapping[str, Any]) -> str:
-    """Which episode settings recorded in an episode-file header differ from ``st`` (for messages)."""
-    recorded = {
+def _episodes_recorded(header: Mapping[str, Any], st: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
+    return {
         "episodes_per_image": (header.get("episodes_per_image"), st["episodes_per_image"]),
         "episode_seed": (header.get("seed"), st["episode_seed"]),
         "hard_rule": (header.get("hard_rule"), st["hard_rule"]),
         "episode_pitch_bound": (header.get("pitch_bound"), st["episode_pitch_bound"]),
         "episode_max_steps": (header.get("max_steps"), st["episode_max_steps"]),
     }
+
+
+def _episodes_mismatch(header: Mapping[str, Any], st: Mapping[str, Any]) -> str:
+    """Which episode settings recorded in an episode-file header differ from ``st`` (for messages)."""
+    recorded = _episodes_recorded(header, st)
     diffs = [f"dataset.{k} {old!r} in the file, {new!r} now" for k, (old, new) in recorded.items() if old != new]
     return "; ".join(diffs) or "it was made from another splits.json or by another version"
 
@@ -322,11 +363,15 @@ def ensure_dataset(
     max_steps: int | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    splits: Iterable[str] | None = None,
 ) -> Path:
     """Make sure ``splits.json`` and the static episode files for ``fovs`` exist and match ``dataset_cfg``;
     returns the absolute ``out_dir``.
 
-    Missing files are made (and the synthetic images generated); existing files are never rewritten.
+    Missing files are made (and the synthetic images generated); existing files are never rewritten. An
+    episode file made with more episodes per image than ``dataset.episodes_per_image`` (all other settings
+    equal) is accepted: its first ``K`` episodes per image per difficulty are the ones asked for (read them
+    with ``load_episodes(path, episodes_per_image=K)``).
     Train / eval call this with ``cfg.dataset``, ``[cfg.sim.fov]`` and ``pitch_bound=task.pitch_bound``,
     then read the files with :func:`findview.dataset.episode_file` / :func:`findview.dataset.load_episodes`
     / :func:`findview.dataset.load_split`.
@@ -342,15 +387,18 @@ def ensure_dataset(
             a forced stop.
         progress: tqdm progress bars.
         log: where to report progress lines (default: silent).
+        splits: the splits whose episode files are needed (those of ``dataset.splits_to_make`` among them);
+            ``None``: all of ``dataset.splits_to_make``.
 
     Raises:
-        DatasetError: ``splits.json`` or an episode file exists but was made for other settings, or
+        DatasetError: ``splits.json`` or an episode file exists but was made for other settings (or with
+            fewer episodes per image than asked for), or
             ``pitch_bound`` does not match; a one-line message naming the file, the mismatch and the
             ``tools/make_dataset.py`` command that makes matching files.
     """
     del max_steps  # documented above: the static episodes never depend on the tool's T
     return _build(dataset_cfg, fovs, force=False, rewrite=False, pitch_bound=pitch_bound, progress=progress,
-                  log=log).out_dir
+                  log=log, splits=splits).out_dir
 
 
 def _build(
@@ -362,6 +410,7 @@ def _build(
     pitch_bound: int | None = None,
     progress: bool,
     log: Callable[[str], None] | None,
+    splits: Iterable[str] | None = None,
 ) -> DatasetSummary:
     """:func:`prepare_dataset` (``rewrite=True``: stale files are rebuilt) and :func:`ensure_dataset`
     (``rewrite=False``: stale files raise)."""
@@ -372,7 +421,8 @@ def _build(
     root = resolve_path(st["root"])
     out_dir = resolve_path(st["out_dir"])
     splits_path = out_dir / SPLITS_FILE
-    wanted = [(split, fov) for split in st["splits_to_make"] for fov in fov_list]
+    needed = st["splits_to_make"] if splits is None else [s for s in st["splits_to_make"] if s in set(splits)]
+    wanted = [(split, fov) for split in needed for fov in fov_list]
     eb = st["episode_pitch_bound"]
     if pitch_bound is not None and wanted and check_pitch_bound(pitch_bound) != eb:
         pb = int(pitch_bound)
@@ -399,7 +449,8 @@ def _build(
     if doc is not None and not reused and not rewrite:
         raise DatasetError(
             f"{splits_path} was made for other dataset settings ({_splits_mismatch(doc, st, root)}) and is not "
-            f"overwritten here: rebuild it and the episode files with: {make_dataset_command(st)} "
+            f"overwritten here: rebuild it and the episode files with: "
+            f"{make_dataset_command(st, **_splits_overrides(doc, st, root))} "
             f"plus this run's dataset.* overrides (or choose another dataset.out_dir)"
         )
 
@@ -410,9 +461,9 @@ def _build(
             root, st["num_images"], st["seed"], st["width"], st["labels"], progress, workers=st["workers"]
         )
 
-    splits: dict[str, list[ImageEntry]]
+    split_images: dict[str, list[ImageEntry]]
     if reused:
-        splits = {s: load_split(out_dir, s) for s in SPLITS}
+        split_images = {s: load_split(out_dir, s) for s in SPLITS}
         say(f"reusing {splits_path}")
     else:
         if entries is None:
@@ -420,28 +471,24 @@ def _build(
         say(f"found {len(entries)} images under {root}")
         if st["validate"]:
             validate_images(entries, workers=st["workers"], progress=progress)
-        splits = split_entries(entries, root, st["split"], st["split_seed"])
+        split_images = split_entries(entries, root, st["split"], st["split_seed"])
         extra = {"kind": st["kind"], "subset": st["subset"], "fingerprint": fp}
-        write_splits(out_dir, splits, dataset=st["name"], root=root, seed=st["split_seed"], ratios=st["split"], extra=extra)
+        write_splits(out_dir, split_images, dataset=st["name"], root=root, seed=st["split_seed"], ratios=st["split"], extra=extra)
         say(f"wrote {splits_path}")
 
     labels: dict[str, dict[str, int]] = {s: {} for s in SPLITS}
     for s in SPLITS:
-        for e in splits[s]:
+        for e in split_images[s]:
             labels[s][e.label] = labels[s].get(e.label, 0) + 1
     summary = DatasetSummary(
         name=st["name"], kind=st["kind"], root=root, out_dir=out_dir, splits_file=splits_path,
-        splits_reused=reused, images={s: len(splits[s]) for s in SPLITS}, labels=labels,
+        splits_reused=reused, images={s: len(split_images[s]) for s in SPLITS}, labels=labels,
     )
     K = st["episodes_per_image"]
     ms = st["episode_max_steps"]
     for split, fov in wanted:
         path = episode_file(out_dir, split, fov)
-        # the digest keys are those of the earlier format, so that files made with the defaults stay valid
-        efp = _digest({
-            "splits": fp, "split": split, "fov": fov, "K": K, "seed": st["episode_seed"],
-            "hard_rule": st["hard_rule"], "pitch_bound": eb, "max_steps": ms, "format": _EPISODE_FORMAT,
-        })
+        efp = _episodes_fingerprint(fp, split, fov, K, st)
         header = None if force or not path.is_file() else _read_episode_header(path)
         key = (split, fov)
         summary.episode_files[key] = path
@@ -450,20 +497,52 @@ def _build(
             summary.episodes_reused[key] = True
             continue
         if not rewrite and path.is_file():
+            counts = _superset_counts(path, header, fp, split, fov, st) if header is not None else None
+            if counts is not None:  # more episodes per image than asked for: the tool takes the first K
+                summary.episode_counts[key] = counts
+                summary.episodes_reused[key] = True
+                continue
             why = "unreadable header" if header is None else _episodes_mismatch(header, st)
+            fix = {} if header is None else {
+                k: new for k, (old, new) in _episodes_recorded(header, st).items() if old != new
+            }
             raise DatasetError(
                 f"{path} was made for other settings ({why}) and is not overwritten here: rebuild it with: "
-                f"{make_dataset_command(st)} plus this run's dataset.* overrides (or choose another dataset.out_dir)"
+                f"{make_dataset_command(st, **fix)} plus this run's dataset.* overrides (or choose another dataset.out_dir)"
             )
-        episodes = make_static_episodes(splits[split], split, fov, K, st["episode_seed"], eb, ms, st["hard_rule"])
+        episodes = make_static_episodes(split_images[split], split, fov, K, st["episode_seed"], eb, ms, st["hard_rule"])
         counts = {d: sum(1 for e in episodes if e.difficulty == d) for d in DIFFICULTIES}
         write_episode_file(
             path, episodes, dataset=st["name"], root=root, split=split, fov=fov, hard_rule=st["hard_rule"],
             seed=st["episode_seed"],
-            extra={"episodes_per_image": K, "pitch_bound": eb, "max_steps": ms, "fingerprint": efp,
+            extra={"episodes_per_image": K, "nested": True, "pitch_bound": eb, "max_steps": ms, "fingerprint": efp,
                    "difficulty_counts": counts},
         )
         summary.episode_counts[key] = counts
         summary.episodes_reused[key] = False
         say(f"wrote {path}")
     return summary
+
+
+def _superset_counts(
+    path: Path, header: Mapping[str, Any], splits_fp: str, split: str, fov: float, st: Mapping[str, Any]
+) -> dict[str, int] | None:
+    """Episodes per difficulty that a tool asking for ``K = dataset.episodes_per_image`` takes from an
+    episode file made with ``K' > K`` and otherwise the same settings (its first ``K`` per image per
+    difficulty); ``None`` when the file differs in anything else.
+
+    Raises:
+        DatasetError: the file matches except that it holds fewer episodes per image than asked for.
+    """
+    have, want = header.get("episodes_per_image"), int(st["episodes_per_image"])
+    if isinstance(have, bool) or not isinstance(have, int):
+        return None
+    if header.get("fingerprint") != _episodes_fingerprint(splits_fp, split, fov, have, st):
+        return None
+    if have < want:
+        raise DatasetError(
+            f"{path} holds {have} episode(s) per image per difficulty (dataset.episodes_per_image={have}) but "
+            f"this run asks for {want}: make them with: {make_dataset_command(st, episodes_per_image=want)} "
+            f"plus this run's other dataset.* overrides (or run with dataset.episodes_per_image={have})"
+        )
+    return {d: int(n) * want // have for d, n in dict(header.get("difficulty_counts", {})).items()}

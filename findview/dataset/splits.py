@@ -41,11 +41,17 @@ __all__ = [
     "read_splits",
     "load_split",
     "MAKE_DATASET_HINT",
+    "MissingDataFile",
 ]
 
 SPLITS = ("train", "val", "test")
 SPLITS_FILE = "splits.json"
 MAKE_DATASET_HINT = "Make it with: python tools/make_dataset.py dataset=<name> [dataset.root=<folder>]"
+
+
+class MissingDataFile(FileNotFoundError):
+    """A data set file (``splits.json``, an episode file) that does not exist; the message names it and the
+    ``tools/make_dataset.py`` command that makes it (a user error: the tools print it as one line)."""
 
 
 def normalize_ratios(ratios: Sequence[float]) -> tuple[Fraction, Fraction, Fraction]:
@@ -175,7 +181,12 @@ def write_splits(
 def read_splits(out_dir: str | os.PathLike) -> dict[str, Any]:
     """The raw ``splits.json`` document of ``out_dir`` (clear error when missing)."""
     path = Path(out_dir) / SPLITS_FILE
-    doc = read_json(path, "splits file", MAKE_DATASET_HINT)
+    try:
+        doc = read_json(path, "splits file", MAKE_DATASET_HINT)
+    except FileNotFoundError as err:
+        raise MissingDataFile(str(err)) from None
+    except ValueError as err:
+        raise DatasetError(f"{err}. {MAKE_DATASET_HINT}") from None
     if not isinstance(doc, dict) or "splits" not in doc or "root" not in doc:
         raise DatasetError(f"{path} is not a findview splits file (missing 'splits' or 'root'). {MAKE_DATASET_HINT}")
     return doc

@@ -27,23 +27,32 @@ class EpisodeCorruption:
     Args:
         names: corruption names to draw from (uniformly, per episode).
         low, high: severity range (inclusive, 1-5), drawn uniformly per episode.
+        clean_fraction: share of episodes (drawn per episode, from its seed) whose target stays clean; 0 draws
+            exactly as before the option existed.
 
     Attributes:
         max_severity: the current upper bound of the drawn severity (``<= high``); the trainer raises it
             from ``low`` to ``high`` when ``corruption.ramp_updates > 0``.
     """
 
-    def __init__(self, names: Sequence[str], low: int, high: int) -> None:
+    def __init__(self, names: Sequence[str], low: int, high: int, clean_fraction: float = 0.0) -> None:
         if not names:
             raise ValueError("EpisodeCorruption needs at least one corruption name")
         if not 1 <= int(low) <= int(high) <= 5:
             raise ValueError(f"corruption.severity range [{low}, {high}]: expected 1 <= low <= high <= 5")
         self.names = tuple(names)
+        if not 0.0 <= float(clean_fraction) < 1.0:
+            raise ValueError(f"corruption.clean_fraction={clean_fraction}: expected a share in [0, 1)")
         self.low, self.high = int(low), int(high)
+        self.clean_fraction = float(clean_fraction)
         self.max_severity = self.high
 
     def choice(self, episode: Episode) -> tuple[str, int]:
-        """The ``(name, severity)`` this episode's target gets (a function of its seed and ``max_severity``)."""
+        """The ``(name, severity)`` this episode's target gets (a function of its seed and ``max_severity``);
+        ``("none", 0)`` for a clean one (``clean_fraction``)."""
+        if self.clean_fraction > 0.0:  # its own stream, so the draws below stay those of clean_fraction = 0
+            if np.random.default_rng([int(episode.seed) % 2**63, _STREAM, 1]).random() < self.clean_fraction:
+                return "none", 0
         rng = np.random.default_rng([int(episode.seed) % 2**63, _STREAM])
         name = self.names[int(rng.integers(len(self.names)))]
         severity = int(rng.integers(self.low, max(self.low, self.max_severity) + 1))
@@ -59,5 +68,7 @@ class EpisodeCorruption:
         from findview.corruptions import corrupt
 
         name, severity = self.choice(episode)
+        if name == "none":
+            return target
         generator = torch.Generator().manual_seed((int(episode.seed) * 1_000_003 + _STREAM) % 2**63)
         return corrupt(target.unsqueeze(0), name, severity, generator=generator)[0]

@@ -21,32 +21,15 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Mapping, Sequence
-from enum import IntEnum
 from typing import Any
 
 import numpy as np
 import torch
 
 from findview.episode import Episode
-
-try:  # the task package defines the canonical enum; keep a local twin until it exists
-    from findview.task import Action  # type: ignore[attr-defined]
-except Exception:  # pragma: no cover - depends on the lead's progress
-
-    class Action(IntEnum):  # type: ignore[no-redef]
-        """Discrete FindView actions (docs/TASK.md)."""
-
-        UP = 0
-        DOWN = 1
-        LEFT = 2
-        RIGHT = 3
-        STOP = 4
-
+from findview.task import ACTION_NAMES, NUM_ACTIONS, Action
 
 UP, DOWN, LEFT, RIGHT, STOP = (int(Action.UP), int(Action.DOWN), int(Action.LEFT), int(Action.RIGHT), int(Action.STOP))
-NUM_ACTIONS = 5
-ACTION_NAMES = ("up", "down", "left", "right", "stop")
-assert (UP, DOWN, LEFT, RIGHT, STOP) == (0, 1, 2, 3, 4), "findview.task.Action must be UP=0 ... STOP=4"
 
 #: config keys every agent accepts and ignores (set by the Hydra group files / tools)
 GENERIC_KEYS = frozenset({"name", "_target_", "description"})

@@ -4,8 +4,11 @@ Steps (:func:`evaluate`):
 
 1. the episodes: ``episodes=<file>``, or ``<dataset.out_dir>/episodes/<split>_fov<sim.fov>.json`` (the
    synthetic data set is generated on first use with ``ensure_dataset``; for other data sets a missing
-   file is an :class:`EvalError` quoting the ``tools/make_dataset.py`` command that makes it), filtered
-   by ``difficulty`` and cut to ``max_episodes``;
+   file is an :class:`EvalError` quoting the ``tools/make_dataset.py`` command that makes it). Either
+   way ``ensure_dataset`` checks that ``splits.json`` and the episode file were made from the root and
+   settings the config names (a mismatch is one line naming the command that makes matching files), and
+   a file with more episodes per image than ``dataset.episodes_per_image`` serves its first ``K`` per
+   image per difficulty. Then filtered by ``difficulty`` and cut to ``max_episodes``;
 2. the simulator and a batched, auto-resetting :class:`~findview.task.FindViewEnv` over a
    :class:`~findview.task.StaticEpisodeSource`;
 3. the agent (``make_agent(agent.name, ...)``, or a PPO checkpoint with ``checkpoint=<path>``);
@@ -30,6 +33,7 @@ log = logging.getLogger("findview.eval")
 
 __all__ = [
     "EvalError",
+    "checkpoint_implies_agent",
     "make_dataset_command",
     "resolve_episodes",
     "filter_episodes",
@@ -50,6 +54,21 @@ def _get(cfg: Any, key: str, default: Any = None) -> Any:
     except Exception:
         return default
     return default if value is None else value
+
+
+def checkpoint_implies_agent(argv: list[str]) -> list[str]:
+    """``tools/eval.py`` arguments with ``agent=ppo`` added when ``checkpoint=<path>`` is given without an
+    ``agent=`` choice, so that the learned agent's keys (``agent.revisit_penalty=0``, ...) are valid
+    overrides in every job (for :func:`findview_baselines.cli.run_tool`'s ``implied``)."""
+    def key_value(arg: str) -> tuple[str, str]:
+        key, _, value = arg.partition("=")
+        return key.lstrip("+~"), value
+
+    args = [key_value(a) for a in argv if not a.startswith("-") and "=" in a]
+    has_checkpoint = any(k == "checkpoint" and v not in ("", "null", "None") for k, v in args)
+    if has_checkpoint and not any(k == "agent" for k, _ in args):
+        return [*argv, "agent=ppo"]
+    return argv
 
 
 def make_dataset_command(cfg: DictConfig, dataset_choice: str | None = None, overrides: Sequence[str] = ()) -> str:
@@ -87,9 +106,11 @@ def make_dataset_command(cfg: DictConfig, dataset_choice: str | None = None, ove
 
 
 def resolve_episodes(
-    cfg: DictConfig, dataset_choice: str | None = None, overrides: Sequence[str] = ()
+    cfg: DictConfig, dataset_choice: str | None = None, overrides: Sequence[str] = (), logger: logging.Logger | None = None
 ) -> tuple[list[Episode], Path, str]:
     """Load the episodes to evaluate. Returns ``(episodes, episode file, data set name)``.
+
+    ``logger``: where progress lines go (the calling tool's logger; default ``findview.eval``).
 
     Raises:
         EvalError: missing / broken episode file (with the command that makes it).
@@ -106,7 +127,7 @@ def resolve_episodes(
         name = str(header.get("dataset", path.stem))
         file_fov = header.get("fov")
         if file_fov is not None and float(file_fov) != fov:
-            log.warning("episode file %s was sampled for FoV %g but sim.fov=%g", path, float(file_fov), fov)
+            (logger or log).warning("episode file %s was sampled for FoV %g but sim.fov=%g", path, float(file_fov), fov)
     else:
         if "dataset" not in cfg or cfg.dataset is None:
             raise EvalError("no data set configured: pass dataset=<name> or episodes=<episode file>")
@@ -116,29 +137,33 @@ def resolve_episodes(
         if out_dir in (None, "", "???"):
             raise EvalError(f"dataset.out_dir is not set for data set {name!r}")
         out_dir = os.path.abspath(os.path.expanduser(str(out_dir)))
-        if _get(cfg, "dataset.kind") == "synthetic":
-            from findview.dataset import DatasetError, SamplingError, ensure_dataset
+        path = episode_file(out_dir, split, fov)
+        synthetic = _get(cfg, "dataset.kind") == "synthetic"
+        if not synthetic and not path.is_file():
+            raise EvalError(
+                f"no {split} episodes for data set {name!r} at FoV {fov:g}: {path} does not exist.\n"
+                f"Make them with:\n  {make_dataset_command(cfg, dataset_choice, overrides)}"
+            )
+        from findview.dataset import SamplingError, dataset_settings, ensure_dataset
 
-            try:
-                out_dir = str(
-                    ensure_dataset(
-                        cfg.dataset, [fov], pitch_bound=int(_get(cfg, "task.pitch_bound", 60)),
-                        progress=bool(_get(cfg, "progress", True)), log=log.info,
-                    )
+        # the files must come from the root and settings the config names (synthetic: made when missing)
+        try:
+            out_dir = str(
+                ensure_dataset(
+                    cfg.dataset, [fov], pitch_bound=int(_get(cfg, "task.pitch_bound", 60)),
+                    progress=bool(_get(cfg, "progress", True)), log=(logger or log).info, splits=[split],
                 )
-            except (DatasetError, SamplingError) as err:  # a message for the user
-                raise EvalError(f"cannot make the synthetic data set: {err}") from err
+            )
+        except SamplingError as err:  # SamplingError is a RuntimeError: give it the data set's context
+            raise EvalError(f"cannot make the episodes of data set {name!r}: {err}") from err
         path = episode_file(out_dir, split, fov)
         if not path.is_file():
             raise EvalError(
                 f"no {split} episodes for data set {name!r} at FoV {fov:g}: {path} does not exist.\n"
                 f"Make them with:\n  {make_dataset_command(cfg, dataset_choice, overrides)}"
             )
-    try:
-        episodes = load_episodes(path)
-    except (FileNotFoundError, ValueError) as err:
-        raise EvalError(str(err)) from err
-    return episodes, path, name
+        return load_episodes(path, episodes_per_image=dataset_settings(cfg.dataset)["episodes_per_image"]), path, name
+    return load_episodes(path), path, name
 
 
 def filter_episodes(episodes: Sequence[Episode], difficulty: Any = None, max_episodes: Any = None) -> list[Episode]:
@@ -201,7 +226,8 @@ def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> d
     checkpoint's run config (``{}`` when it has none).
 
     Raises:
-        EvalError: the file is missing or not a findview checkpoint (naming it).
+        CheckpointNotFound, CheckpointError: the file is missing, a folder or not a findview checkpoint
+            (naming it, what it is and what was expected).
     """
     from omegaconf import open_dict
 
@@ -209,10 +235,7 @@ def apply_checkpoint_config(cfg: DictConfig, overrides: Sequence[str] = ()) -> d
     from findview_baselines.rl.checkpoint import load_checkpoint
 
     path = os.path.expanduser(str(_get(cfg, "checkpoint")))
-    try:
-        state = load_checkpoint(path)
-    except (FileNotFoundError, ValueError) as err:
-        raise EvalError(f"{err} (checkpoint=...)") from None
+    state = load_checkpoint(path, key="checkpoint")  # CheckpointError / CheckpointNotFound: user errors
     run_conf = dict(state.get("config") or {})
     sig = dict(state["signature"])
     trained_sim = dict(run_conf.get("sim") or {})

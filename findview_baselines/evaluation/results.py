@@ -15,6 +15,7 @@ unless asked (:func:`tuned_thresholds`).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -34,6 +35,10 @@ __all__ = [
     "make_summary",
     "summary_markdown",
     "write_results",
+    "agent_title",
+    "learned_agent_info",
+    "non_default_settings",
+    "run_settings",
     "CORRUPTION_CATEGORIES",
     "CollectError",
     "EvalRun",
@@ -77,11 +82,17 @@ def make_summary(records: Iterable[Mapping[str, Any]], runtime: Mapping[str, flo
 
 
 def summary_markdown(summary: Mapping[str, Any], agent: str, meta: Mapping[str, Any] | None = None) -> str:
-    """``summary.md``: the paper's table layout (one row: eps / omega_stop / omega_perf / SPL per
-    difficulty), the per-difficulty episode counts and the runtime block (paper Table 12)."""
+    """``summary.md``: a title (a learned agent by its trainer and variant, see :func:`agent_title`), the
+    run's settings that differ from the defaults (``meta["settings"]``, see :func:`non_default_settings`),
+    the paper's table layout (one row: eps / omega_stop / omega_perf / SPL per difficulty), the
+    per-difficulty episode counts and the runtime block (paper Table 12)."""
     groups = {k: v for k, v in summary.items() if k != "runtime"}
     meta = dict(meta or {})
+    settings = meta.pop("settings", None)
+    agent = agent_title(agent, meta)
     lines = [f"# {agent}" + (f" on {meta['dataset']} / {meta['split']}" if "dataset" in meta and "split" in meta else "")]
+    if settings is not None:
+        lines += ["", "Settings that differ from the defaults: " + (", ".join(f"`{x}`" for x in settings) if settings else "none")]
     details = ", ".join(f"{k}: {v}" for k, v in meta.items() if k not in ("dataset", "split") and v is not None)
     if details:
         lines += ["", details]
@@ -99,6 +110,122 @@ def summary_markdown(summary: Mapping[str, Any], agent: str, meta: Mapping[str, 
         f"| {rt.get('agent_fps', 0.0):.1f} | {rt.get('env_fps', 0.0):.1f} |",
     ]
     return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------ titles and settings
+def learned_agent_info(checkpoint: Any) -> dict[str, str]:
+    """``{"trainer": "dagger", "variant": "direct"}`` of a learned agent's checkpoint (from the run config
+    it stores); ``{}`` for what cannot be read (a missing or foreign file: the tools report that)."""
+    path = Path(os.path.expanduser(str(checkpoint)))
+    try:
+        stamp = path.stat().st_mtime_ns
+    except OSError:
+        return {}
+    return dict(_checkpoint_info(str(path), stamp))
+
+
+@functools.lru_cache(maxsize=64)
+def _checkpoint_info(path: str, _stamp: int) -> tuple[tuple[str, str], ...]:
+    from findview_baselines.rl.checkpoint import load_checkpoint
+
+    try:
+        state = load_checkpoint(path)
+    except (OSError, ValueError):
+        return ()
+    conf = state.get("config") if isinstance(state, Mapping) else None
+    conf = conf if isinstance(conf, Mapping) else {}
+    trainer = conf.get("trainer") if isinstance(conf.get("trainer"), Mapping) else {}
+    sig = state.get("signature") if isinstance(state.get("signature"), Mapping) else {}
+    info = {"trainer": trainer.get("algorithm"), "variant": sig.get("variant")}
+    return tuple((k, str(v)) for k, v in info.items() if v not in (None, ""))
+
+
+def agent_title(agent: str, meta: Mapping[str, Any]) -> str:
+    """The name a run's agent is shown under: a learned agent (``ppo`` config, a ``checkpoint``) by the
+    algorithm that trained it and its network variant (``dagger direct``; ``learned`` when the checkpoint
+    does not say), a rule-based agent by its name."""
+    if agent != "ppo" or not meta.get("checkpoint"):
+        return agent
+    trainer, variant = meta.get("trainer"), meta.get("variant")
+    return " ".join(str(x) for x in (trainer or "learned", variant) if x)
+
+
+def non_default_settings(
+    config: Mapping[str, Any], defaults: Mapping[str, Any], choices: Mapping[str, str] | None = None
+) -> list[str]:
+    """``key=value`` for every leaf of ``config`` that differs from (or is missing in) ``defaults``, in
+    key order, after the config-group choices that differ from the primary config's (``sim=fov60``)."""
+    out = [f"{g}={c}" for g, c in sorted((choices or {}).items())]
+    flat, base = _flatten(config), _flatten(defaults)
+    out += [f"{k}={v}" for k, v in sorted(flat.items()) if not k.startswith("hydra.") and base.get(k) != v]
+    return out
+
+
+def _hydra_choices(run_dir: Path) -> tuple[str, dict[str, str]] | None:
+    """``(config name, config-group choices)`` of a run, from its ``.hydra/hydra.yaml``."""
+    path = run_dir / ".hydra" / "hydra.yaml"
+    if not path.is_file():
+        return None
+    from omegaconf import OmegaConf
+
+    hydra_cfg = OmegaConf.load(path).hydra
+    choices = {str(k): str(v) for k, v in hydra_cfg.runtime.choices.items()
+               if not str(k).startswith("hydra/") and v is not None}
+    return str(hydra_cfg.job.config_name), choices
+
+
+def _compose_any(config_name: str, overrides: list[str], return_hydra_config: bool = False) -> Any:
+    """Compose a tool's config, inside a running tool (and its joblib workers) or outside one."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        from hydra import compose
+
+        return compose(config_name, overrides=overrides, return_hydra_config=return_hydra_config)
+    from findview_baselines.cli import compose_config
+
+    return compose_config(config_name, overrides, return_hydra_config=return_hydra_config)
+
+
+def _compose(config_name: str, overrides: list[str]) -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(_compose_any(config_name, overrides), resolve=True)  # type: ignore[return-value]
+
+
+def run_settings(run_dir: str | os.PathLike, resolved_config: str) -> list[str] | None:
+    """The settings of the run in ``run_dir`` that differ from the defaults: its config (the resolved YAML
+    text) against the tool's config composed with the same config-group choices (a learned agent:
+    ``agent=ppo``), plus the group choices that differ from the tool's defaults. ``None`` when the run
+    folder has no Hydra record or the defaults cannot be composed (the results are written anyway)."""
+    from omegaconf import OmegaConf
+
+    found = _hydra_choices(Path(run_dir))
+    if found is None:
+        return None
+    config_name, choices = found
+    config = OmegaConf.to_container(OmegaConf.create(resolved_config), resolve=True)
+    if not isinstance(config, dict):
+        return None
+    agent = config.get("agent") if isinstance(config.get("agent"), Mapping) else {}
+    if config.get("checkpoint") and agent.get("name") == "ppo":
+        choices["agent"] = "ppo"  # a checkpoint implies the learned agent, whatever the default group is
+    groups = [g for g in choices if "/" not in g and g != "experiment"]
+    try:
+        defaults = _compose(config_name, [f"{g}={choices[g]}" for g in groups])
+        base_choices = _hydra_default_choices(config_name)
+    except Exception:  # a group option that no longer exists, ...: the settings line is left out
+        return None
+    changed = {g: choices[g] for g in groups if base_choices.get(g) != choices[g]}
+    if choices.get("experiment"):
+        changed["+experiment"] = choices["experiment"]
+    return non_default_settings(config, defaults, changed)
+
+
+def _hydra_default_choices(config_name: str) -> dict[str, str]:
+    cfg = _compose_any(config_name, [], return_hydra_config=True)
+    return {str(k): str(v) for k, v in cfg.hydra.runtime.choices.items() if v is not None}
+
 
 
 def _write_jsonl(path: Path, records: Sequence[Mapping[str, Any]]) -> Path:
@@ -122,9 +249,17 @@ def write_results(
 ) -> dict[str, Any]:
     """Write ``episodes.jsonl``, ``run.json`` (meta + detailed runtime), ``config_resolved.yaml`` (when
     ``resolved_config`` is given), ``summary.md`` and, last, ``summary.json`` into ``out_dir``, each
-    atomically. Returns the summary."""
+    atomically. A learned agent's trainer and variant (from its checkpoint) and the settings that differ
+    from the defaults (read from the run folder's ``.hydra/hydra.yaml``) join ``meta``. Returns the summary."""
     out = Path(out_dir)
     summary = make_summary(records, runtime)
+    meta = dict(meta or {})
+    if agent == "ppo" and meta.get("checkpoint"):
+        meta.update(learned_agent_info(meta["checkpoint"]))
+    if resolved_config is not None and "settings" not in meta:
+        settings = run_settings(out, resolved_config)
+        if settings is not None:
+            meta["settings"] = settings
     _write_jsonl(out / "episodes.jsonl", records)
     write_json(out / "run.json", {"agent": agent, **dict(meta or {}), "runtime": dict(runtime)})
     if resolved_config is not None:
@@ -175,6 +310,29 @@ class EvalRun:
     corruption: str = CLEAR
     severity: int = 0
     settings: dict[str, str] = field(repr=False, default_factory=dict)
+
+    @property
+    def learned(self) -> bool:
+        """A learned agent (its ``checkpoint``): titled by trainer and variant, never tuned."""
+        return self.agent == "ppo" and bool(self.config.get("checkpoint"))
+
+    @property
+    def title(self) -> str:
+        """The agent's name in tables (:func:`agent_title`): ``orb``, ``dagger direct``, ..."""
+        if not self.learned:
+            return self.agent
+        info = {k: self.meta[k] for k in ("trainer", "variant") if self.meta.get(k)}
+        if "trainer" not in info:  # runs of an older eval: ask the checkpoint
+            info = {**learned_agent_info(self.config["checkpoint"]), **info}
+        agent_cfg = self.config.get("agent") if isinstance(self.config.get("agent"), Mapping) else {}
+        if "variant" not in info and agent_cfg.get("variant"):
+            info["variant"] = agent_cfg["variant"]
+        return agent_title(self.agent, {"checkpoint": self.config["checkpoint"], **info})
+
+    def stopped(self, difficulty: str) -> bool:
+        """Whether any episode of ``difficulty`` ended by ``stop`` (``omega_stop > 0``; unknown: yes)."""
+        value = self.summary[difficulty].get("omega_stop")
+        return value is None or float(value) > 0
 
     def difficulties(self) -> list[str]:
         """The difficulties this run evaluated (present in its summary)."""
@@ -232,7 +390,10 @@ def _read_json_dict(path: Path) -> dict[str, Any]:
 
 
 def _canon(value: Any) -> str:
-    """A comparable string for a config value (``inf`` for infinities, JSON for lists / mappings)."""
+    """A comparable string for a config value (``inf`` for infinities, ``true`` / ``false``, JSON for lists
+    / mappings)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
     if isinstance(value, float):
         return "inf" if value == math.inf else ("-inf" if value == -math.inf else repr(value))
     if isinstance(value, (list, tuple, Mapping)):
@@ -346,10 +507,16 @@ class RunGroup:
     def split(self) -> str:
         return self.runs[0].split
 
+    @property
+    def max_steps(self) -> str:
+        """``T`` (``task.max_steps``) of the group's runs (``?`` when their configs do not say)."""
+        values = sorted({r.settings.get("task.max_steps", "?") for r in self.runs})
+        return ", ".join(values)
+
     def title(self) -> str:
-        """``<dataset> / <split>`` plus the distinguishing settings."""
-        extra = ", ".join(f"{k}={v}" for k, v in self.context if k not in ("dataset.name", "split"))
-        return f"{self.dataset} / {self.split}" + (f" ({extra})" if extra else "")
+        """``<dataset> / <split>`` plus the distinguishing settings and the episode limit ``T``."""
+        extra = ", ".join(f"{k}={v}" for k, v in self.context if k not in ("dataset.name", "split", "task.max_steps"))
+        return f"{self.dataset} / {self.split}" + (f" ({extra})" if extra else "") + f", T = {self.max_steps}"
 
 
 def _row_keys(mode: str) -> Callable[[str], bool]:
@@ -394,12 +561,13 @@ def _short_paths(paths: Sequence[str]) -> dict[str, str]:
 
 def agent_labels(runs: Sequence[EvalRun], swept: Sequence[str] = ("agent.d_thresh",)) -> dict[Path, str]:
     """Row label per run folder: the agent's name, plus the agent settings other than ``swept`` in
-    which runs of that agent differ (``orb (agent.n_features=1000)``; a learned agent's checkpoint by the
-    shortest distinct end of its path, ``ppo (checkpoint=before.pth)``), so that they are never merged."""
+    which runs of that agent differ (``orb (agent.n_features=1000)``; a learned agent is titled by its
+    trainer and variant, its checkpoint by the shortest distinct end of its path, ``dagger direct
+    (checkpoint=before.pth)``), so that they are never merged."""
     labels: dict[Path, str] = {}
     by_name: dict[str, list[EvalRun]] = {}
     for r in runs:
-        by_name.setdefault(r.agent, []).append(r)
+        by_name.setdefault(r.title, []).append(r)
     for name, rs in by_name.items():
         keys = sorted({k for r in rs for k in r.settings
                        if (k == "agent" or k.startswith("agent.") or k in LEARNED_AGENT_KEYS) and k not in swept})
@@ -417,14 +585,15 @@ def agent_labels(runs: Sequence[EvalRun], swept: Sequence[str] = ("agent.d_thres
 def _collect(
     runs: Sequence[EvalRun], metric: str, labels: Mapping[Path, str] | None = None, warn: Any = None
 ) -> dict[str, dict[str, dict[float, float]]]:
-    """``{agent label: {difficulty: {threshold: metric value}}}`` of one group. Two runs in one cell
-    are reported to ``warn`` (same settings twice: the later folder is shown)."""
+    """``{agent label: {difficulty: {threshold: metric value}}}`` of one group (``metric`` ``"stopped"``:
+    1.0 when some episode ended by ``stop``, else 0.0). Two runs in one cell are reported to ``warn``
+    (same settings twice: the later folder is shown)."""
     labels = labels or {r.path: r.agent for r in runs}
     table: dict[str, dict[str, dict[float, float]]] = {}
     source: dict[tuple[str, str, float], Path] = {}
     for run in runs:
         for d in run.difficulties():
-            value = run.summary[d].get(metric)
+            value = float(run.stopped(d)) if metric == "stopped" else run.summary[d].get(metric)
             if value is None:
                 continue
             t = threshold_value(run.d_thresh, d)
@@ -454,11 +623,15 @@ def threshold_table(runs: Sequence[EvalRun], metric: str = "eps", warn: Any = No
     """Markdown tables in the layout of the paper's Tables 13-15: one table per group of runs (see
     :func:`group_runs`: data set, split, FoV, view size, corruption, episodes, checkpoint, ...), rows
     difficulty x agent, columns the ``d_thresh`` values, cells ``metric`` (default ``eps``); the best
-    value of each row is bold (lowest for ``eps``, highest otherwise; ties all bold)."""
+    value of each row among the runs that stopped in some episode is bold (lowest for ``eps``, highest
+    otherwise; ties all bold). A run in which no episode ended by ``stop`` (``omega_stop`` 0: every
+    episode ran to ``T``) is marked ``(no stop)`` and never bold: it is no candidate for ``d_thresh``."""
     lower_is_better = metric == "eps"
     out: list[str] = []
     for group in group_runs(runs, "thresholds"):
-        data = _collect(group.runs, metric, agent_labels(group.runs), warn)
+        labels = agent_labels(group.runs)
+        data = _collect(group.runs, metric, labels, warn)
+        stops = _collect(group.runs, "stopped", labels)
         if not data:
             continue
         thresholds = sorted({t for row in data.values() for d in row.values() for t in d})
@@ -472,7 +645,8 @@ def threshold_table(runs: Sequence[EvalRun], metric: str = "eps", warn: Any = No
                 row = data[label].get(d)
                 if not row:
                     continue
-                vals = [v for v in row.values() if not math.isnan(v)]
+                stopped = stops.get(label, {}).get(d, {})
+                vals = [v for t, v in row.items() if not math.isnan(v) and stopped.get(t, 1.0)]
                 best = (min(vals) if lower_is_better else max(vals)) if vals else None
                 cells = []
                 for t in thresholds:
@@ -480,6 +654,9 @@ def threshold_table(runs: Sequence[EvalRun], metric: str = "eps", warn: Any = No
                         cells.append("-")
                         continue
                     s = _fmt_value(row[t], metric)
+                    if not stopped.get(t, 1.0):
+                        cells.append(s + " (no stop)")
+                        continue
                     cells.append(f"**{s}**" if best is not None and row[t] == best else s)
                 out.append(f"| {d} | {label} | " + " | ".join(cells) + " |")
         out.append("")
@@ -488,13 +665,21 @@ def threshold_table(runs: Sequence[EvalRun], metric: str = "eps", warn: Any = No
     return "\n".join(out)
 
 
-def _best_of_group(group: RunGroup) -> dict[str, dict[str, float]]:
+def _best_of_group(group: RunGroup, warn: Any = None) -> dict[str, dict[str, float]]:
+    """Per agent label and difficulty the best threshold among the runs that stopped in some episode; a
+    row where no run stopped gets no threshold (said to ``warn``)."""
     labels = agent_labels(group.runs)
     eps, spl = _collect(group.runs, "eps", labels), _collect(group.runs, "spl", labels)
+    stops = _collect(group.runs, "stopped", labels)
     best: dict[str, dict[str, float]] = {}
     for label, per_diff in eps.items():
         for d, row in per_diff.items():
-            candidates = [t for t, v in row.items() if not math.isnan(v)]
+            stopped = stops.get(label, {}).get(d, {})
+            candidates = [t for t, v in row.items() if not math.isnan(v) and stopped.get(t, 1.0)]
+            if not candidates and warn is not None:
+                tried = ", ".join(format_threshold(t) for t in sorted(row))
+                warn(f"{label} on {group.title()}, {d}: no run stopped in any episode (omega_stop 0 for d_thresh "
+                     f"{tried}; every episode ran to T = {group.max_steps}): no d_thresh chosen for {d}")
             if candidates:
                 s = spl.get(label, {}).get(d, {})
                 best.setdefault(label, {})[d] = min(candidates, key=lambda t: (row[t], -s.get(t, 0.0), t))
@@ -513,11 +698,13 @@ def config_suffix(group: RunGroup) -> str:
 
 
 def tuned_thresholds(
-    runs: Sequence[EvalRun], allow_test_tuning: bool = False
+    runs: Sequence[EvalRun], allow_test_tuning: bool = False, warn: Any = None
 ) -> dict[tuple[str, str, str], tuple[dict[str, float], RunGroup]]:
     """``{(agent label, dataset, suffix): ({difficulty: best d_thresh}, group)}``: per difficulty the lowest
-    mean ``eps``; ties go to the higher SPL, then to the smaller threshold (tied thresholds give identical
-    runs). ``suffix`` is ``""`` when the agent and data set have runs of one setting only, else
+    mean ``eps`` among the runs in which some episode ended by ``stop``; ties go to the higher SPL, then to
+    the smaller threshold (tied thresholds give identical runs). A difficulty where no run stopped gets no
+    threshold and an agent with none at all no entry (each said to ``warn``). Learned agents (a
+    ``checkpoint``) have no threshold and are left out. ``suffix`` is ``""`` when the agent and data set have runs of one setting only, else
     :func:`config_suffix` of the group (one tuned config per FoV, view size, ...).
 
     Only validation-split runs are used; other splits only with ``allow_test_tuning``, and then only
@@ -526,7 +713,7 @@ def tuned_thresholds(
     Raises:
         CollectError: only non-validation runs and no ``allow_test_tuning``.
     """
-    groups = group_runs(runs, "thresholds")
+    groups = group_runs([r for r in runs if not r.learned], "thresholds")
     val_groups = [g for g in groups if all(r.is_val for r in g.runs)]
     chosen = val_groups
     if allow_test_tuning:
@@ -540,7 +727,11 @@ def tuned_thresholds(
         )
     picks: dict[tuple[str, str], list[tuple[dict[str, float], RunGroup]]] = {}
     for g in chosen:
-        for label, thresholds in _best_of_group(g).items():
+        best = _best_of_group(g, warn)
+        for label in sorted({lab for lab in agent_labels(g.runs).values()} - set(best)):
+            if warn is not None:
+                warn(f"{label} on {g.title()}: no run stopped in any episode; no d_thresh chosen, no config written")
+        for label, thresholds in best.items():
             picks.setdefault((label, g.dataset), []).append((thresholds, g))
     out: dict[tuple[str, str, str], tuple[dict[str, float], RunGroup]] = {}
     for (label, dataset), found in picks.items():
@@ -572,19 +763,23 @@ def _yaml_number(x: float) -> str:
 
 def tuned_config_text(
     agent: str, dataset: str, thresholds: Mapping[str, float], source: str = "", split: str = "val",
-    name: str | None = None, settings: str = "",
+    name: str | None = None, settings: str = "", untuned: Sequence[str] = (),
 ) -> str:
-    """An ``agent`` group config that extends ``<agent>.yaml`` with the tuned ``d_thresh`` per difficulty.
+    """An ``agent`` group config that extends ``<agent>.yaml`` with the tuned ``d_thresh`` per difficulty,
+    to be copied into ``configs/agent/``.
 
     Difficulties without a tuned value keep the base config's threshold. ``name``: the config's name
-    (default ``<agent>_tuned_<dataset>``); ``settings``: the runs' distinguishing settings, for the header.
+    (default ``<agent>_tuned_<dataset>``); ``settings``: the runs' distinguishing settings, for the header;
+    ``untuned``: difficulties that were evaluated but where no run stopped (named in the header).
     """
     name = name or f"{agent}_tuned_{dataset}"
     lines = [
         f"# {agent} with d_thresh tuned on the {dataset} {split} episodes (lowest mean eps per difficulty),",
         "# written by tools/collect_results.py" + (f" from {source}" if source else "") + ".",
         *([f"# Tuned for: {settings}"] if settings else []),
-        f"# Use it with: python tools/eval.py agent={name} dataset={dataset}",
+        *([f"# Not tuned (no run stopped in any episode; the base config's d_thresh stays): {', '.join(untuned)}"]
+          if untuned else []),
+        f"# Use it: cp {name}.yaml configs/agent/ && python tools/eval.py agent={name} dataset={dataset}",
         "defaults:",
         f"  - {agent}",
         "  - _self_",

@@ -270,6 +270,13 @@ def episode_frame(
     return frame
 
 
+def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    """``image`` enlarged ``factor`` times with nearest-neighbour sampling (the agent's pixels, unblurred)."""
+    if factor <= 1:
+        return image
+    return cv2.resize(image, (image.shape[1] * factor, image.shape[0] * factor), interpolation=cv2.INTER_NEAREST)
+
+
 def write_video(
     path: str | os.PathLike,
     panorama: np.ndarray,
@@ -281,12 +288,15 @@ def write_video(
     mode: str = "bilinear",
     fps: float = 30.0,
     pano_height: int | None = None,
+    min_view_height: int = 256,
 ) -> Path:
     """Write an MP4 (``mp4v``) with one :func:`episode_frame` per rotation, atomically.
 
-    The panorama strip is ``pano_height`` (default: the view height) high; when it differs from the view
-    height the views are letterboxed to match. Frames are written to a temp file beside ``path``, then
-    renamed.
+    The views are rendered at the agent's ``height x width`` and enlarged by a whole factor (nearest
+    neighbour) until they are at least ``min_view_height`` pixels high (a 64 x 64 view shows as 256 x 256);
+    the panorama strip beside them is ``pano_height`` (default: the shown view height) high; when it
+    differs from the view height the shorter part is padded. Frames are written to a temp file beside
+    ``path``, then renamed.
 
     Returns:
         ``path``.
@@ -297,12 +307,14 @@ def write_video(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     He = panorama.shape[0]
-    ph = int(pano_height) if pano_height else int(height)
-    rows = max(ph, int(height))
+    factor = max(1, -(-int(min_view_height) // int(height)))  # ceil
+    shown_h, shown_w = int(height) * factor, int(width) * factor
+    ph = int(pano_height) if pano_height else shown_h
+    rows = max(ph, shown_h)
     pano_small = downscale_panorama(panorama, ph)
-    tgt = render_views(panorama, [target], fov, height, width, mode)[0]
+    tgt = _upscale(render_views(panorama, [target], fov, height, width, mode)[0], factor)
     tgt_uv = view_outline(*target, fov, height, width, He)
-    frame_w = 2 * width + 2 * ph
+    frame_w = 2 * shown_w + 2 * ph
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".mp4", dir=path.parent)
     os.close(fd)
     writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (frame_w, rows))
@@ -314,7 +326,8 @@ def write_video(
             rots = list(rotations[start : start + chunk])
             views = render_views(panorama, rots, fov, height, width, mode)
             for rot, view in zip(rots, views):
-                frame = episode_frame(view, tgt, pano_small, view_outline(*rot, fov, height, width, He), tgt_uv, He)
+                frame = episode_frame(_upscale(view, factor), tgt, pano_small,
+                                      view_outline(*rot, fov, height, width, He), tgt_uv, He)
                 writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
         writer.release()
         umask = os.umask(0)

@@ -3,8 +3,8 @@ the PPO update (``ppo``), the PPO update loop (``ppo_trainer``), imitation of th
 the difficulty curriculum (``scheduler``), the training run with its callbacks (``run``), checkpoints
 (``checkpoint``) and run safety (``safety``: folder lock, signals)."""
 
+from findview.task import NUM_ACTIONS
 from findview_baselines.rl.policy import (
-    NUM_ACTIONS,
     VARIANTS,
     ConvEncoder,
     Policy,

@@ -41,12 +41,58 @@ CHECKPOINT_VERSION = 1
 __all__ = [
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_VERSION",
+    "CheckpointError",
+    "CheckpointNotFound",
+    "OutputPathError",
     "save_checkpoint",
     "load_checkpoint",
     "check_writable",
     "capture_rng_state",
     "restore_rng_state",
 ]
+
+
+class CheckpointError(ValueError):
+    """A file given as a checkpoint that is not a usable findview checkpoint; the message says what the
+    file is and what was expected (the tools print it as one line, exit status 2)."""
+
+
+class CheckpointNotFound(FileNotFoundError):
+    """No file at the checkpoint path (the tools print the message as one line, exit status 2)."""
+
+
+class OutputPathError(PermissionError):
+    """An output folder that cannot be created or written (the tools print it as one line, exit status 2)."""
+
+
+_EXPECTED = "expected a .pth written by tools/train.py"
+
+
+def _describe_file(path: Path) -> str:
+    """What a file that is not a findview checkpoint looks like, from its first bytes (for messages)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError as err:
+        return f"unreadable: {err.strerror or err}"
+    if not head:
+        return "an empty file"
+    if head.startswith(b"PK\x03\x04"):
+        return "a zip archive (a torch file of another program?)"
+    if head[:1] == b"\x80":
+        return "a pickle file (an old-style torch file of another program?)"
+    if b"\x00" not in head:
+        try:
+            head.decode("utf-8")
+            return "a text file"
+        except UnicodeDecodeError as err:
+            if err.start >= len(head) - 4:  # a multi-byte character cut by the 4096-byte window
+                return "a text file"
+    return "a binary file of another format"
+
+
+def _not_checkpoint(label: str, what: str) -> CheckpointError:
+    return CheckpointError(f"{label}: not a findview checkpoint ({what}; {_EXPECTED})")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -62,25 +108,42 @@ def save_checkpoint(path: str | os.PathLike, state: Mapping[str, Any]) -> Path:
     return atomic_write(path, lambda tmp: torch.save(dict(state), tmp))
 
 
-def load_checkpoint(path: str | os.PathLike, map_location: torch.device | str | None = "cpu") -> dict[str, Any]:
+def load_checkpoint(
+    path: str | os.PathLike, map_location: torch.device | str | None = "cpu", key: str | None = None
+) -> dict[str, Any]:
     """Load a findview PPO checkpoint with ``weights_only=True``.
 
+    Args:
+        path: the ``.pth`` file.
+        map_location: as for ``torch.load``.
+        key: the config key that named the file (``checkpoint``, ``init_from``); messages then start with
+            ``<key>=<path>:`` instead of the path.
+
     Raises:
-        FileNotFoundError: no file at ``path``.
-        ValueError: the file is not a findview PPO checkpoint (message names the file).
+        CheckpointNotFound: no file at ``path``.
+        CheckpointError: ``path`` is a folder, or a file that is not a findview checkpoint (the message says
+            what it is and what was expected).
     """
     path = Path(path)
+    label = f"{key}={path}" if key else str(path)
+    if path.is_dir():
+        raise CheckpointError(f"{label}: a folder, not a checkpoint file ({_EXPECTED}, e.g. "
+                              f"<run folder>/checkpoints/best.pth)")
     if not path.is_file():
         card = path.parent / "README.md"
         hint = f" ({card} says how to make it: weights files are not kept in git)" if card.is_file() else ""
-        raise FileNotFoundError(f"checkpoint not found: {path}{hint}")
+        raise CheckpointNotFound(f"checkpoint not found: {path}{hint}")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:  # unpickling error, truncated file, foreign pickle, ...
-        first = next((line.strip() for line in str(err).splitlines() if line.strip()), "")[:200]
-        raise ValueError(f"{path} is not a loadable findview checkpoint ({type(err).__name__}: {first})") from err
-    if not isinstance(state, dict) or "signature" not in state or "policy" not in state:
-        raise ValueError(f"{path} is not a findview PPO checkpoint (no 'signature' / 'policy' entries)")
+    except Exception as err:  # unpickling error, truncated file, foreign pickle, text, ...
+        what = _describe_file(path)
+        if what.startswith(("a zip", "a pickle")):
+            what += f" that torch cannot load safely ({type(err).__name__})"
+        raise _not_checkpoint(label, what) from err
+    if not isinstance(state, dict):
+        raise _not_checkpoint(label, f"a torch file holding a {type(state).__name__}")
+    if "signature" not in state or "policy" not in state:
+        raise _not_checkpoint(label, "a torch file without findview's 'signature' and 'policy' entries")
     return state
 
 
@@ -90,7 +153,7 @@ def check_writable(folder: str | os.PathLike, what: str = "output folder") -> Pa
     Works for root too (a path below a regular file can never be created). Returns the absolute path.
 
     Raises:
-        PermissionError: naming the folder, the OS error and what to do.
+        OutputPathError: (a ``PermissionError``) naming the folder, the OS error and what to do.
     """
     folder = Path(folder).expanduser().absolute()
     try:
@@ -99,7 +162,7 @@ def check_writable(folder: str | os.PathLike, what: str = "output folder") -> Pa
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
-        raise PermissionError(
+        raise OutputPathError(
             f"{what} {folder} is not writable ({type(err).__name__}: {err.strerror or err}); "
             f"choose another one, e.g. hydra.run.dir=<writable folder>"
         ) from err

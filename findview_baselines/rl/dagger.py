@@ -54,6 +54,7 @@ from typing import Any, Callable, Mapping
 import torch
 from torch import nn
 
+from findview.task import NUM_ACTIONS
 from findview.task.oracle import (
     ORDERS,
     SEARCH_PRIORS,
@@ -65,7 +66,7 @@ from findview.task.oracle import (
 from findview_baselines.agents.revisit import make_revisit_penalty
 from findview_baselines.rl import distributed
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
-from findview_baselines.rl.policy import NUM_ACTIONS, AuxHead, Policy, aux_loss, check_signature
+from findview_baselines.rl.policy import AuxHead, Policy, aux_loss, check_signature
 from findview_baselines.rl.ppo_trainer import UpdateAbandoned, no_distribution_validation
 from findview_baselines.rl.scheduler import DifficultyScheduler
 from findview_baselines.rl.storage import AUX_SIZE

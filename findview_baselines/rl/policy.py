@@ -52,8 +52,12 @@ import torch
 from torch import nn
 from torch.distributions import Categorical
 
-NUM_ACTIONS = 5  # up, down, left, right, stop (findview.task.Action)
-VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct")
+from findview.task import NUM_ACTIONS  # up, down, left, right, stop (findview.task.Action)
+
+#: the policy variants (``agent.variant``); ``robust`` is ``direct`` on photometrically normalised images
+VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct", "robust")
+#: the variants with a fine cost pyramid (``agent.fine_shifts``)
+FINE_VARIANTS = ("correlation", "direct", "robust")
 PRECISIONS = ("fp32", "bf16")  # agent.precision: the encoder's compute dtype (see Policy.configure_speed)
 
 Obs = Mapping[str, torch.Tensor]
@@ -304,6 +308,38 @@ DIRECT_CONTEXT = 4
 DIRECT_SOFTMIN_TEMPERATURE = 5.0
 
 
+def standardize(image: torch.Tensor) -> torch.Tensor:
+    """Photometric normalisation of the ``robust`` variant: (B, 3, H, W) float -> (B, 3, H, W), each image
+    and channel shifted to mean 0 and scaled to standard deviation ``STANDARDIZE_SCALE`` (a flat channel,
+    std below ``STANDARDIZE_FLOOR``, keeps its deviations unscaled beyond that floor).
+
+    An affine change of the intensities (brightness, contrast, much of fog) leaves the result unchanged, so the
+    cost volumes computed on it compare structure, not exposure. Identical inputs still give identical
+    outputs: a clean target still matches its view exactly."""
+    mean = image.mean(dim=(2, 3), keepdim=True)
+    centred = image - mean
+    std = centred.square().mean(dim=(2, 3), keepdim=True).sqrt()
+    return centred * (STANDARDIZE_SCALE / std.clamp_min(STANDARDIZE_FLOOR))
+
+
+def highpass(grey: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) -> (B, 1, H, W): the image minus its local mean over a box of about a quarter of the
+    image side (odd, edges replicated): removes slowly varying haze (fog) and keeps local structure."""
+    k = (min(grey.shape[-2:]) // 4) | 1
+    padded = nn.functional.pad(grey, (k // 2,) * 4, mode="replicate")
+    # the k x k box sums from running sums along each axis (6x faster on a CPU than avg_pool2d's k^2 window)
+    running = nn.functional.pad(padded.cumsum(-1), (1, 0))
+    rows = running[..., k:] - running[..., :-k]
+    running = nn.functional.pad(rows.cumsum(-2), (0, 0, 1, 0))
+    return grey - (running[..., k:, :] - running[..., :-k, :]) / (k * k)
+
+
+# the robust variant: standard deviation of a standardised image (about that of a typical photo in [0, 1],
+# so the cost scalings of the direct variant keep their range) and the smallest std that is scaled up
+STANDARDIZE_SCALE = 0.2
+STANDARDIZE_FLOOR = 0.02
+
+
 class DirectEncoder(nn.Module):
     """Fixed photometric comparisons of view and target + a small learned head (the ``direct`` variant).
 
@@ -322,6 +358,12 @@ class DirectEncoder(nn.Module):
             (1 and 0 only when the view is the target: a clean target is rendered bit for bit) -> (B, 2)
         concat -> (Linear -> LayerNorm -> ReLU) x 2                         -> (B, hidden)
 
+    ``normalized=True`` (the ``robust`` variant) first passes view and target through :func:`standardize`
+    (per image and channel: mean 0, fixed standard deviation), so brightness, contrast, snow and frost change
+    the global costs little; the fine pyramid compares :func:`highpass` images (standardised), which fog's
+    slowly varying haze leaves nearly alone; the colour thumbnails are the standardised colours (scaled by 0.5
+    instead of mapped to [-1, 1]). A clean target still gives exactly zero cost at the true shift.
+
     Nothing before the head is learned, so training touches only about 0.3M parameters and no image
     convolution: a CPU trains it an order of magnitude faster than the ``correlation`` variant. The global
     volume tells the direction to any target that shares content with the view (shifts up to about
@@ -330,8 +372,12 @@ class DirectEncoder(nn.Module):
     meant for corrupted targets must be trained with them (``corruption.*``) to learn a softer stop rule.
     """
 
-    def __init__(self, height: int, width: int, out_size: int, fine_shifts: int = 2, fine_scales: int = 4) -> None:
+    def __init__(
+        self, height: int, width: int, out_size: int, fine_shifts: int = 2, fine_scales: int = 4,
+        normalized: bool = False,
+    ) -> None:
         super().__init__()
+        self.normalized = bool(normalized)
         if height < 16 or width < 16:
             raise ValueError(f"image {height}x{width} is too small for the direct encoder (needs at least 16x16)")
         coarsest = min(height, width) >> (int(fine_scales) - 1) if fine_scales >= 1 else 0
@@ -380,8 +426,12 @@ class DirectEncoder(nn.Module):
     def forward(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """``view``, ``target`` (B, 3, H, W) float in [0, 1] -> (B, out_size)."""
         b, n = view.shape[0], self.volume_size
+        if self.normalized:
+            view, target = standardize(view), standardize(target)
         grey_v = view.mean(dim=1, keepdim=True)
         grey_t = target.mean(dim=1, keepdim=True)
+        # the fine pyramid of the robust variant compares local structure: high-passed, standardised grey
+        fine_v, fine_t = (standardize(highpass(grey_v)), standardize(highpass(grey_t))) if self.normalized else (grey_v, grey_t)
         thumb_v = nn.functional.adaptive_avg_pool2d(grey_v, DIRECT_COARSE)
         thumb_t = nn.functional.adaptive_avg_pool2d(grey_t, DIRECT_COARSE)
         costs = self.global_costs(thumb_v, thumb_t)  # (B, n*n)
@@ -393,13 +443,13 @@ class DirectEncoder(nn.Module):
         weights = torch.softmax(-shape * DIRECT_SOFTMIN_TEMPERATURE, dim=1)
         parts = [coarse, weights @ self.shift_coords, low * 4.0]
         if self.fine_shifts:
-            fine = pyramid_costs(grey_v, grey_t, self.fine_shifts, self.fine_scales)
+            fine = pyramid_costs(fine_v, fine_t, self.fine_shifts, self.fine_scales)
             parts.append(cost_features(fine, self.fine_scales))
         context = torch.cat([
             nn.functional.adaptive_avg_pool2d(view, DIRECT_CONTEXT).flatten(1),
             nn.functional.adaptive_avg_pool2d(target, DIRECT_CONTEXT).flatten(1),
         ], dim=1)
-        parts.append(context * 2.0 - 1.0)
+        parts.append(context * (0.5 if self.normalized else 2.0) - (0.0 if self.normalized else 1.0))
         residual = (grey_v - grey_t).abs().mean(dim=(1, 2, 3))[:, None]
         parts += [torch.exp(-1000.0 * residual), residual * 4.0]
         return self.fuse(torch.cat(parts, dim=1))
@@ -514,8 +564,8 @@ class Policy(nn.Module):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"unknown policy variant {variant!r}; choose one of {VARIANTS}")
-        if fine_shifts and variant not in ("correlation", "direct"):
-            raise ValueError(f"fine_shifts={fine_shifts} needs variant 'correlation' or 'direct', got {variant!r}")
+        if fine_shifts and variant not in FINE_VARIANTS:
+            raise ValueError(f"fine_shifts={fine_shifts} needs variant 'correlation', 'direct' or 'robust', got {variant!r}")
         self.fine_shifts = int(fine_shifts)
         self.fine_scales = int(fine_scales) if self.fine_shifts else 1
         self.variant = variant
@@ -534,8 +584,10 @@ class Policy(nn.Module):
             self.encoder = ConvEncoder(3, height, width, hidden_size)
             self.fuse = nn.Sequential(nn.Linear(2 * hidden_size, hidden_size), nn.ReLU())
             feature_size = hidden_size
-        elif variant == "direct":
-            self.encoder = DirectEncoder(height, width, hidden_size, self.fine_shifts, self.fine_scales)
+        elif variant in ("direct", "robust"):
+            self.encoder = DirectEncoder(
+                height, width, hidden_size, self.fine_shifts, self.fine_scales, normalized=variant == "robust"
+            )
             feature_size = hidden_size
         else:  # correlation
             self.encoder = CorrelationEncoder(
@@ -641,7 +693,7 @@ class Policy(nn.Module):
         if self.variant == "goal_encoder":
             fused = self.encoder(torch.cat([view, target], dim=1))
             return torch.cat([fused, self.goal_encoder(target)], dim=1)
-        if self.variant in ("correlation", "direct"):
+        if self.variant in FINE_VARIANTS:
             return self.encoder(view, target)
         # siamese: one encoder, two passes batched together
         both = self.encoder(torch.cat([view, target], dim=0))

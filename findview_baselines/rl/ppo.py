@@ -147,7 +147,7 @@ def _check_finite(terms: Mapping[str, torch.Tensor]) -> None:
 class PPO:
     """PPO optimiser for a :class:`Policy`.
 
-    Usage per update (see ``trainer.py``)::
+    Usage per update (see ``ppo_trainer.py``)::
 
         ppo.set_progress(update, total_updates)      # linear decay of lr and clip
         storage.compute_returns(next_value, cfg.gamma, cfg.gae_lambda)

@@ -80,8 +80,24 @@ REPLICATED_KEYS = ("signature", "policy", "ppo", "optimizer", "aux_head", "kind"
 #: per-rank entries bound to a rank's environments and data; dropped when resuming with another rank count
 RANK_DATA_KEYS = ("env", "storage", "current", "episode_returns", "buffer", "rng")
 
-LOSS_KEYS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction", "grad_norm", "aux_loss",
-             "loss", "accuracy", "beta")
+#: per-update stats that set the schedule (logged as their latest value under ``schedule/<key>``)
+SCHEDULE_KEYS = ("lr", "clip", "level", "beta", "critic_warmup")
+#: per-update stats that are bookkeeping, not metrics (the update index is logged as ``progress/update``)
+BOOKKEEPING_KEYS = ("update", "env_steps", "episodes")
+
+
+def tb_tag(key: str) -> str | None:
+    """The TensorBoard tag of a per-update stat a trainer reports: ``loss/<key>`` for losses (``loss`` and
+    ``*_loss``), ``schedule/<key>`` for :data:`SCHEDULE_KEYS`, ``update/<key>`` for every other metric
+    (``entropy``, ``approx_kl``, ``kl_to_init``, ``oracle_share``, ...); ``None`` for bookkeeping. Every
+    numeric stat gets a tag: nothing a trainer reports is dropped."""
+    if key in BOOKKEEPING_KEYS:
+        return None
+    if key in SCHEDULE_KEYS:
+        return f"schedule/{key}"
+    if key == "loss" or key.endswith("_loss"):
+        return f"loss/{key}"
+    return f"update/{key}"
 
 
 class TrainingDiverged(RuntimeError):
@@ -279,7 +295,8 @@ def learn(ctx: RunContext, callbacks: Sequence[Callback], stop_at: int, stop: St
     callbacks see them."""
     algo = ctx.algo
     try:
-        while algo.update < stop_at and not stop.agree():
+        stopping = stop.agree()
+        while algo.update < stop_at and not stopping:
             try:
                 stats = algo.train_update(stop)
             except UpdateAbandoned as err:
@@ -297,6 +314,10 @@ def learn(ctx: RunContext, callbacks: Sequence[Callback], stop_at: int, stop: St
                     f"check the inputs, then re-run to resume from the last checkpoint."
                 ) from err
             stats = distributed.reduce_stats(stats)
+            # a stop asked for during this update (agreed by every rank): the callbacks skip what can wait
+            # (a scheduled validation) and the session ends after them, writing latest.pth
+            stopping = stop.agree()
+            ctx.extra["stopping"] = stopping
             for cb in callbacks:
                 cb.on_update(ctx, stats)
     except BaseException:
@@ -337,10 +358,13 @@ class ProgressCallback(Callback):
 
 
 class TensorBoardCallback(Callback):
-    """Scalars every ``log_interval`` updates: losses, recent episodes, schedule, speed, phase timings."""
+    """Scalars every ``log_interval`` updates against the env steps so far (the x-axis habitat-baselines
+    and SB3 runs are compared by): every numeric stat of the updates (:func:`tb_tag`; metrics averaged
+    over the interval, schedule values as of the last update), the update index (``progress/update``),
+    recent episodes, speed and phase timings."""
 
     def __init__(self, run_dir: Path, log_interval: int, resumed_at: int, steps_per_update: int) -> None:
-        """``resumed_at``: the update a resumed session starts from (-1 for a fresh run)."""
+        """``resumed_at``: the env steps a resumed session starts from (-1 for a fresh run)."""
         from torch.utils.tensorboard import SummaryWriter
 
         # purge_step drops events a crashed session logged after the checkpoint it is resumed from
@@ -349,15 +373,19 @@ class TensorBoardCallback(Callback):
         self.steps_per_update = steps_per_update
         self.window = _MetricWindow(size=200)
         self.totals: dict[str, float] = {}
+        self.counts: dict[str, int] = {}
         self.count = 0
         self.t0 = time.perf_counter()
         self.steps = 0
 
     def on_update(self, ctx: RunContext, stats: Mapping[str, Any]) -> None:
         self.window.add(stats.get("episodes", []))
-        for key in LOSS_KEYS:
-            if isinstance(stats.get(key), (int, float)):
-                self.totals[key] = self.totals.get(key, 0.0) + float(stats[key])
+        for key, value in stats.items():
+            tag = tb_tag(key)
+            if tag is None or not isinstance(value, (int, float)) or tag.startswith("schedule/"):
+                continue
+            self.totals[tag] = self.totals.get(tag, 0.0) + float(value)
+            self.counts[tag] = self.counts.get(tag, 0) + 1
         self.count += 1
         self.steps += self.steps_per_update
         update = ctx.algo.update
@@ -365,23 +393,25 @@ class TensorBoardCallback(Callback):
             return
         elapsed = time.perf_counter() - self.t0
         timings = ctx.algo.pop_timings()
-        scalars = {f"loss/{k}": v / self.count for k, v in self.totals.items()}
+        scalars = {tag: v / self.counts[tag] for tag, v in self.totals.items()}
         scalars.update({f"train/{k}": v for k, v in self.window.summary().items()})
-        for key in ("lr", "clip", "level"):
+        for key in SCHEDULE_KEYS:
             if isinstance(stats.get(key), (int, float)):
                 scalars[f"schedule/{key}"] = float(stats[key])
+        scalars["progress/update"] = float(update)
         scalars["perf/fps"] = self.steps / max(elapsed, 1e-9)
         scalars["perf/env_steps"] = float(ctx.algo.env_steps)
         scalars.update({f"time/{k}": v / self.count for k, v in timings.items()})
         for key, value in scalars.items():
-            self.writer.add_scalar(key, value, update)
-        self.totals, self.count, self.steps, self.t0 = {}, 0, 0, time.perf_counter()
+            self.writer.add_scalar(key, value, ctx.algo.env_steps)
+        self.totals, self.counts, self.count, self.steps, self.t0 = {}, {}, 0, 0, time.perf_counter()
 
-    def add_validation(self, update: int, result: Mapping[str, Mapping[str, float]], best: float) -> None:
+    def add_validation(self, env_steps: int, result: Mapping[str, Mapping[str, float]], best: float) -> None:
+        """The validation metrics at ``env_steps`` (the x-axis of every scalar)."""
         for diff, metrics in result.items():
             for key in ("eps", "omega_stop", "omega_perf", "spl"):
-                self.writer.add_scalar(f"val/{diff}/{key}", metrics[key], update)
-        self.writer.add_scalar("val/best_eps", best, update)
+                self.writer.add_scalar(f"val/{diff}/{key}", metrics[key], env_steps)
+        self.writer.add_scalar("val/best_eps", best, env_steps)
         self.t0 = time.perf_counter()  # keep validation out of the fps
 
     def on_end(self, ctx: RunContext, stopped: bool) -> None:
@@ -416,6 +446,10 @@ class ValidationCallback(Callback):
         due = (self.interval > 0 and update % self.interval == 0) or (self.at_end and update == ctx.num_updates)
         if not due:
             return
+        if ctx.extra.get("stopping"):  # a signal asked to stop: write latest.pth now, validate another time
+            if self.env is not None:
+                log.info("stop requested: validation at update %d skipped", update)
+            return
         ctx.extra["validated_at"] = update  # on every rank: the checkpoint that follows is collective
         if self.env is None:
             return  # not rank 0
@@ -426,7 +460,7 @@ class ValidationCallback(Callback):
             save_checkpoint(ctx.best_path, ctx.checkpoint(with_trainer=False))
             log.info("new best val eps %.3f at update %d -> %s", mean_eps, update, ctx.best_path)
         if self.tb is not None:
-            self.tb.add_validation(update, ctx.last_val, ctx.best_val_eps)
+            self.tb.add_validation(ctx.algo.env_steps, ctx.last_val, ctx.best_val_eps)
 
 
 class CheckpointCallback(Callback):
@@ -472,7 +506,7 @@ class SeverityRamp(Callback):
 
 def _build_data(conf: Mapping[str, Any], dataset_cfg: Any, progress: bool) -> tuple[list[Any], list[Any]]:
     """(train images, val episodes) of the configured dataset; makes the dataset files if missing."""
-    from findview.dataset import ensure_dataset, episode_file, load_episodes, load_split
+    from findview.dataset import dataset_settings, ensure_dataset, episode_file, load_episodes, load_split
 
     fov = float(conf["sim"]["fov"])
     task = conf["task"]
@@ -481,7 +515,8 @@ def _build_data(conf: Mapping[str, Any], dataset_cfg: Any, progress: bool) -> tu
     if not train_images:
         raise UserError(f"the train split of dataset {conf['dataset'].get('name')!r} in {out_dir} is empty")
     path = episode_file(out_dir, "val", fov)
-    val_episodes = load_episodes(path) if path.is_file() else []
+    k = dataset_settings(dataset_cfg)["episodes_per_image"]  # a file made with more serves its first k per image
+    val_episodes = load_episodes(path, episodes_per_image=k) if path.is_file() else []
     return train_images, val_episodes
 
 
@@ -667,7 +702,8 @@ def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> 
 
     sched_cfg = conf.get("scheduler") or {}
     scheduler = DifficultyScheduler(num_updates, num_levels=int(sched_cfg.get("num_levels", 3)),
-                                    mode=str(sched_cfg.get("mode", "unbounded")))
+                                    mode=str(sched_cfg.get("mode", "unbounded")),
+                                    start_level=int(sched_cfg.get("start_level", 1)))
     sampler = EpisodeSampler(
         train_images, float(sim_cfg["fov"]), seed=rank_seed, pitch_bound=int(task_cfg["pitch_bound"]),
         max_steps=int(task_cfg["max_steps"]), hard_rule=str(conf["dataset"].get("hard_rule", "or")),
@@ -741,7 +777,7 @@ def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> 
     tb = None
     if main:
         tb = TensorBoardCallback(run_dir, int(t.get("log_interval", 10)),
-                                 algo.update if resume_state is not None else -1, steps_per_update)
+                                 algo.env_steps if resume_state is not None else -1, steps_per_update)
         callbacks += [ProgressCallback(num_updates, algo.update, show_progress, steps_per_update), tb]
     main_validates = distributed.all_gather(val_env is not None)[0]  # only rank 0 has val episodes
     if val_env is not None:

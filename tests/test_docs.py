@@ -1,0 +1,120 @@
+"""Every documented command runs (tools/check_docs.py), and the extractor finds what it should."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _check_docs():
+    spec = importlib.util.spec_from_file_location("check_docs", REPO / "tools" / "check_docs.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["check_docs"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+check_docs = _check_docs()
+
+SAMPLE = """# Title
+
+Run `python tools/eval.py agent=<orb|sift> dataset=<name> [episode_index=3]` or read `findview/sim.py`.
+
+| command | what |
+|---|---|
+| `python tools/make_dataset.py dataset=<name>` | make it |
+
+```bash
+# a comment
+pip install -e . && python tools/train.py +experiment=quickstart \\
+    trainer.num_updates=5   # trailing comment
+python -m pytest -q tests
+OMP_NUM_THREADS=1 python benchmarks/bench_sim.py --iters 2
+```
+
+```
+$ python tools/train.py trainer.num_envs=abc
+train: error: trainer.num_envs='abc': expected an integer
+```
+
+<!-- check_docs: skip (needs a GPU) -->
+```bash
+python benchmarks/bench_train.py --device cuda
+```
+
+<!-- check_docs: skip (hours) -->
+Inline: `torchrun --nproc_per_node=K tools/train.py ...
+trainer.distributed=true`.
+
+```python
+python tools/not_shell.py
+```
+
+Afterwards `python tools/render_episode.py dataset.root=<sun360_mini>` runs again.
+"""
+
+
+def test_extractor_finds_commands_joins_splits_and_marks():
+    cmds = check_docs.extract(SAMPLE, "sample.md")
+    texts = [c.text for c in cmds]
+    assert texts == [
+        "python tools/eval.py agent=<orb|sift> dataset=<name> [episode_index=3]",
+        "python tools/make_dataset.py dataset=<name>",
+        "pip install -e .",
+        "python tools/train.py +experiment=quickstart trainer.num_updates=5",
+        "OMP_NUM_THREADS=1 python benchmarks/bench_sim.py --iters 2",
+        "python tools/train.py trainer.num_envs=abc",
+        "python benchmarks/bench_train.py --device cuda",
+        "torchrun --nproc_per_node=K tools/train.py ... trainer.distributed=true",
+        "python tools/render_episode.py dataset.root=<sun360_mini>",
+    ]
+    lines = [c.line for c in cmds]
+    assert lines == [3, 7, 11, 11, 14, 18, 24, 28, 35]
+    by_text = {c.text: c for c in cmds}
+    assert by_text["python tools/train.py trainer.num_envs=abc"].expect_error == (
+        "train: error: trainer.num_envs='abc': expected an integer")
+    assert by_text["python benchmarks/bench_train.py --device cuda"].skip == "needs a GPU"
+    assert by_text["torchrun --nproc_per_node=K tools/train.py ... trainer.distributed=true"].skip == "hours"
+    assert [c.skip for c in cmds].count(None) == 7  # the markers stop at their own block / paragraph
+
+
+def test_placeholders_and_overrides(tmp_path):
+    ctx = check_docs.Context(tmp_path, "/panos")
+    cmd = check_docs.substitute(
+        "python tools/eval.py agent=<orb\\|sift> dataset=<name> [episode_index=3] dataset.root=<sun360_mini> "
+        "'corruption.severity=[1,3]' ...", ctx)
+    assert cmd == "python tools/eval.py agent=orb dataset=synthetic dataset.root=/panos 'corruption.severity=[1,3]'"
+    assert ctx.needs == {"sun360"}
+    assert "$FINDVIEW_SUN360_MINI" not in check_docs.substitute("x --root $FINDVIEW_SUN360_MINI", ctx)
+    assert check_docs.substitute("torchrun --nproc_per_node=K tools/train.py", ctx).endswith("=2 tools/train.py")
+    ran = check_docs.prepare("python tools/eval.py split=test")
+    assert str(REPO / "tools" / "eval.py") in ran and ran.index("split=test") < ran.index("max_episodes=2")
+    # an error example gets no overrides (they could hide the error)
+    assert check_docs.prepare("python tools/train.py trainer.num_envs=abc", overrides=False).endswith("num_envs=abc")
+
+
+def test_pip_install_is_checked_not_run():
+    assert check_docs.check_pip("pip install -e '.[dev]'") is None
+    assert check_docs.check_pip("pip install 'findview[gym]'") is None
+    assert "no extra" in check_docs.check_pip("pip install 'findview[nosuchextra]'")
+
+
+def test_every_documented_command_runs(tmp_path):
+    """Every command of README.md, docs/*.md and pretrained/README.md, with small overrides (tools/check_docs.py's
+    OVERRIDES). benchmarks/RESULTS.md's commands are checked by ``python tools/check_docs.py benchmarks/RESULTS.md``
+    (several minutes: many benchmark scripts), not by the suite."""
+    env = dict(os.environ)
+    t0 = time.monotonic()
+    docs = ["README.md", "docs/*.md", "pretrained/README.md"]
+    p = subprocess.run([sys.executable, str(REPO / "tools" / "check_docs.py"), "--workdir", str(tmp_path), *docs],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    print(p.stdout[-6000:], p.stderr[-2000:])
+    assert p.returncode == 0, p.stdout[-6000:] + p.stderr[-2000:]
+    print(f"check_docs took {time.monotonic() - t0:.0f} s")

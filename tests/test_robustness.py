@@ -1,0 +1,83 @@
+"""benchmarks/robustness.py end to end on the built-in synthetic data: a tiny benchmark (random agent, fog and
+contrast at severities 1 and 3, FoV 90, T = 30) runs, writes the tables and the plot, resumes, and
+``--dry-run`` runs nothing."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import cv2
+
+REPO = Path(__file__).resolve().parents[1]
+ARGS = ["--agents", "random", "--corruptions", "fog", "contrast", "--severities", "1", "3", "--fovs", "90",
+        "--T", "30", "--calibration-episodes", "1", "--jobs", "2"]
+CELLS = ["random_fov90_clear", "random_fov90_contrast_s1", "random_fov90_contrast_s3", "random_fov90_fog_s1",
+         "random_fov90_fog_s3"]
+
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+import robustness  # noqa: E402  (benchmarks/robustness.py)
+
+
+def bench(capsys, out: Path, *extra: str) -> str:
+    """The command in this process (it starts tools/eval.py subprocesses itself); returns its stdout."""
+    rc = robustness.main([*ARGS, "--out", str(out), *extra])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.out + captured.err
+    return captured.out
+
+
+def test_robustness_benchmark_end_to_end(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(REPO)  # the synthetic data set's images: data/synthetic/images of the repository
+    out = tmp_path / "bench"
+
+    # --dry-run: the plan, nothing run or written
+    stdout = bench(capsys, out, "--dry-run")
+    assert "5 cells" in stdout and "dry run" in stdout
+    assert sum(line.strip().startswith("run ") for line in stdout.splitlines()) == 5
+    assert not out.exists()
+
+    # the benchmark: every cell ran, with an estimate before and the wall time after
+    stdout = bench(capsys, out)
+    assert "expected run time" in stdout and "wall time" in stdout
+    assert stdout.index("expected run time") < stdout.index("[1/5]")
+    runs = out / "runs"
+    assert sorted(p.name for p in runs.iterdir()) == CELLS
+    for cell in CELLS:
+        summary = json.loads((runs / cell / "summary.json").read_text())
+        assert sum(summary[d]["episodes"] for d in ("easy", "medium", "hard")) == 12
+        meta = json.loads((runs / cell / "run.json").read_text())
+        assert meta["corruption"] == ("none" if cell.endswith("clear") else cell.split("_")[2])
+    mtimes = {c: (runs / c / "summary.json").stat().st_mtime_ns for c in CELLS}
+
+    # tables: per severity, eps and omega_stop, rows = agents, columns = clear + the corruptions by category
+    tables = (out / "tables.md").read_text()
+    for metric in ("eps", "omega_stop"):
+        for sev in (1, 3):
+            assert f"{metric} averaged over the difficulties, severity {sev}" in tables
+    assert tables.count("| agent | clear | contrast | fog |") == 4
+    assert tables.count("| *category* |  | *digital* | *weather* |") == 4
+    rows = [line for line in tables.splitlines() if line.startswith("| random |")]
+    assert len(rows) == 5 and all(len(r.strip("|").split("|")) in (4, 10) for r in rows)
+    assert "| agent | clear | blur s1 | blur s3 | noise s1 | noise s3 | digital s1 | digital s3 | weather s1 | weather s3 |" in tables
+
+    # the plot: one PNG for FoV 90, of the documented size
+    png = cv2.imread(str(out / "plots" / "eps_vs_severity_fov90.png"))
+    assert png is not None and png.shape[:2] == robustness.PLOT_SIZE
+
+    # resume: a second invocation skips every finished cell and runs nothing
+    stdout = bench(capsys, out)
+    assert "5 finished, 0 to run" in stdout and "[1/" not in stdout
+    assert {c: (runs / c / "summary.json").stat().st_mtime_ns for c in CELLS} == mtimes
+
+    # a cell whose settings changed is not finished (the next invocation would re-run it)
+    args = robustness.build_parser().parse_args([*ARGS, "--out", str(out)])
+    args.fovs = [float(f) for f in args.fovs]
+    agents = robustness.parse_agents(args.agents, AssertionError)
+    plan = robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
+    assert [c.name for c in plan if robustness.is_done(c, {})] == [c.name for c in plan]
+    args.T = 31
+    plan = robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
+    assert not any(robustness.is_done(c, {}) for c in plan)
