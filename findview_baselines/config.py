@@ -22,7 +22,7 @@ from typing import Any, Optional
 
 from omegaconf import MISSING
 
-from findview_baselines.rl.dagger import DAggerConfig
+from findview_baselines.rl.dagger_config import DAggerConfig
 from findview_baselines.rl.ppo import PPOConfig
 
 from findview.config import (

@@ -5,7 +5,8 @@
 - ``random``: uniform actions (seeded);
 - ``oracle``: shortest path from the episode's privileged rotations (eps 0, SPL 1);
 - ``orb`` / ``sift``: the paper's rule-based feature-matching agents (docs/TASK.md, section Rule-based agents);
-- ``rotation``: relative-rotation estimation from feature matches + straight walk (beyond the paper).
+- ``rotation``: relative-rotation estimation from feature matches + straight walk (beyond the paper);
+  its geometry is in ``rotation_geometry``, its photometric check in ``photometric``.
 
 More agents (e.g. a learned policy) can be added with :func:`register_agent`.
 """

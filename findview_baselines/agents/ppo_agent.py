@@ -103,7 +103,8 @@ class PPOAgent(Agent):
             height, width: the simulator's view size; a checkpoint trained on another size raises
                 ``ValueError`` saying which.
         """
-        from findview_baselines.rl.policy import Policy, check_signature
+        from findview_baselines.rl.policy import Policy
+        from findview_baselines.rl.signature import check_signature
 
         state = load_ppo_checkpoint(path)
         sig = dict(state["signature"])

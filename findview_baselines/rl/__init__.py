@@ -1,19 +1,17 @@
-"""Learned agents: the recurrent actor-critic policy (``policy``), rollout storage + GAE (``storage``),
-the PPO update (``ppo``), the PPO update loop (``ppo_trainer``), imitation of the oracle (``dagger``),
-the difficulty curriculum (``scheduler``), the training run with its callbacks (``run``), checkpoints
-(``checkpoint``) and run safety (``safety``: folder lock, signals)."""
+"""Learned agents: the recurrent actor-critic policy (``policy``; its image encoders ``encoders``, the
+auxiliary rotation head ``aux_head``, the checkpoint signature check ``signature``), rollout storage + GAE
+(``storage``), the PPO update (``ppo``), the PPO update loop (``ppo_trainer``), imitation of the oracle
+(``dagger``: the trainer; ``dagger_config``, ``dagger_loss``, ``sequence_buffer``), the difficulty
+curriculum (``scheduler``), the training run with its callbacks (``run``), checkpoints (``checkpoint``)
+and run safety (``safety``: folder lock, signals)."""
 
 from findview.task import NUM_ACTIONS
-from findview_baselines.rl.policy import (
-    VARIANTS,
-    ConvEncoder,
-    Policy,
-    build_policy,
-    check_signature,
-)
+from findview_baselines.rl.encoders import ConvEncoder
+from findview_baselines.rl.policy import VARIANTS, Policy, build_policy
 from findview_baselines.rl.ppo import PPO, PPOConfig, linear_decay, ppo_loss
 from findview_baselines.rl.ppo_trainer import PPOTrainer
 from findview_baselines.rl.scheduler import DifficultyScheduler
+from findview_baselines.rl.signature import check_signature
 from findview_baselines.rl.storage import MiniBatch, RolloutStorage
 
 __all__ = [

@@ -42,13 +42,16 @@ episodes), the current observation / GRU state, every RNG and (``save_buffer``) 
 and N/2 + resume + N/2 give the same weights on CPU. The buffer takes ``2 * buffer_size * 3 * H * W``
 bytes of uint8 images (about 400 MB for 16384 steps of 64x64 views) in memory and in ``latest.pth``; with
 ``save_buffer=false`` the checkpoint stays small and a resumed run refills the buffer (not exact).
+
+The pieces live in modules of their own: the hyper-parameters and the beta schedule in ``dagger_config.py``
+(:class:`DAggerConfig`, :func:`beta_at`), the loss in ``dagger_loss.py`` (:func:`set_nll`) and the buffer
+in ``sequence_buffer.py`` (:class:`SequenceBuffer`); this module holds the trainer and re-exports them.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, fields
 from typing import Any, Callable, Mapping
 
 import torch
@@ -56,8 +59,6 @@ from torch import nn
 
 from findview.task import NUM_ACTIONS
 from findview.task.oracle import (
-    ORDERS,
-    SEARCH_PRIORS,
     optimal_action_mask_for,
     oracle_actions_for,
     overlap_mask,
@@ -65,13 +66,21 @@ from findview.task.oracle import (
 )
 from findview_baselines.agents.revisit import make_revisit_penalty
 from findview_baselines.rl import distributed
+from findview_baselines.rl.aux_head import AuxHead, aux_loss
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
-from findview_baselines.rl.policy import AuxHead, Policy, aux_loss, check_signature
+from findview_baselines.rl.dagger_config import LABEL_MODES, DAggerConfig, beta_at
+from findview_baselines.rl.dagger_loss import set_nll
+from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.ppo_trainer import UpdateAbandoned, no_distribution_validation
 from findview_baselines.rl.scheduler import DifficultyScheduler
+from findview_baselines.rl.sequence_buffer import SequenceBuffer
+from findview_baselines.rl.signature import check_signature
 from findview_baselines.rl.storage import AUX_SIZE
 
-__all__ = ["DAggerConfig", "DAggerTrainer", "SequenceBuffer", "STAT_KEYS", "TIMING_KEYS", "beta_at", "set_nll"]
+__all__ = [
+    "DAggerConfig", "DAggerTrainer", "SequenceBuffer", "STAT_KEYS", "TIMING_KEYS", "beta_at", "set_nll",
+    "LABEL_MODES",
+]
 
 TIMING_KEYS = ("env_step", "policy_forward", "rollout_other", "update")
 # scalar entries of train_update()'s stats (besides update / env_steps / level / episodes)
@@ -81,271 +90,6 @@ STAT_KEYS = (
 )
 AUX_STAT_KEYS = ("aux_loss", "aux_rotation_loss", "aux_overlap_accuracy")
 STOP = NUM_ACTIONS - 1
-LABEL_MODES = ("action", "set")
-
-
-@dataclass
-class DAggerConfig:
-    """DAgger hyper-parameters (``trainer=dagger``). Units: steps are environment steps of one env."""
-
-    lr: float = 1e-3
-    """Adam learning rate."""
-    adam_eps: float = 1e-5
-    """Adam epsilon."""
-    max_grad_norm: float = 1.0
-    """Gradient norm clip (over the policy and the aux head)."""
-    linear_decay: bool = False
-    """Decay the learning rate linearly to 0 over the run's ``total_updates``."""
-    rollout_steps: int = 32
-    """Steps per environment per update (a multiple of ``seq_len``)."""
-    seq_len: int = 16
-    """Length (steps) of the sequences the GRU trains on; chunks of the rollout go into the buffer."""
-    buffer_size: int = 16384
-    """Buffer capacity in labelled steps (``buffer_size // seq_len`` chunks, FIFO)."""
-    epochs: float = 4.0
-    """Gradient steps per update = ceil(epochs * new chunks / batch_sequences): on average each new chunk is
-    used ``epochs`` times while it is the newest data (older chunks keep being sampled)."""
-    batch_sequences: int = 16
-    """Chunks per mini-batch (``batch_sequences * seq_len`` labelled steps)."""
-    beta_start: float = 1.0
-    """Probability (per env, per step) of executing the oracle's label instead of the learner's action at
-    update 0."""
-    beta_end: float = 0.0
-    """That probability from update ``beta_decay_updates`` on."""
-    beta_decay_updates: int = 60
-    """Updates over which beta falls linearly from ``beta_start`` to ``beta_end`` (0: ``beta_end`` at once)."""
-    stop_weight: float = 1.0
-    """Cross-entropy class weight of ``stop`` (the four moves weigh 1): above 1 penalises missed stops more."""
-    search_weight: float = 1.0
-    """Loss weight of the steps where view and target do not overlap (the search prior's labels; 1 = as
-    any step). Hard episodes are long, so at the last curriculum level most labelled steps are "pan right":
-    below 1 keeps them from drowning the few steps that find and stop on the target."""
-    search_prior: str = "pan"
-    """Labels where view and target do not overlap: ``pan`` (pan right until they do), ``sweep`` (match
-    pitch, then pan right) or ``oracle`` (the true shortest path, which a learner cannot see)."""
-    order: str = "pitch_first"
-    """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
-    ``pitch_first``, ``yaw_first`` or ``larger_first``."""
-    labels: str = "action"
-    """``action``: the oracle's one action (cross-entropy); ``set``: any shortest-path action is right
-    (likelihood of the set)."""
-    sample_actions: bool = False
-    """The learner executes sampled actions (true) or its argmax, as at evaluation (false)."""
-    aux_coef: float = 0.0
-    """Weight of the auxiliary rotation / overlap loss (0 = off)."""
-    save_buffer: bool = True
-    """Store the buffer in ``state_dict`` (exact resume, large checkpoints); false: a resume refills it."""
-
-    def __post_init__(self) -> None:
-        positive = ("lr", "rollout_steps", "seq_len", "buffer_size", "batch_sequences", "epochs")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"dagger.{name} must be positive, got {getattr(self, name)!r}")
-        if self.rollout_steps % self.seq_len:
-            raise ValueError(
-                f"dagger.rollout_steps ({self.rollout_steps}) must be a multiple of dagger.seq_len ({self.seq_len})"
-            )
-        if self.buffer_size < self.seq_len:
-            raise ValueError(
-                f"dagger.buffer_size ({self.buffer_size}) must hold one sequence of {self.seq_len} steps"
-            )
-        for name in ("beta_start", "beta_end"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
-        if self.beta_decay_updates < 0:
-            raise ValueError(f"dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
-        if self.search_weight <= 0:
-            raise ValueError(f"dagger.search_weight must be positive, got {self.search_weight!r}")
-        if self.stop_weight <= 0 or self.aux_coef < 0 or self.max_grad_norm <= 0:
-            raise ValueError(
-                f"dagger: need stop_weight > 0, aux_coef >= 0, max_grad_norm > 0; got {self.stop_weight}, "
-                f"{self.aux_coef}, {self.max_grad_norm}"
-            )
-        if self.search_prior not in SEARCH_PRIORS:
-            raise ValueError(f"dagger.search_prior must be one of {SEARCH_PRIORS}, got {self.search_prior!r}")
-        if self.labels not in LABEL_MODES:
-            raise ValueError(f"dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
-        if self.order not in ORDERS:
-            raise ValueError(f"dagger.order must be one of {ORDERS}, got {self.order!r}")
-
-    @classmethod
-    def from_mapping(cls, cfg: Mapping[str, Any]) -> "DAggerConfig":
-        """Pick the known keys of a (Hydra / dict) config; other keys are ignored."""
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: cfg[k] for k in known if k in cfg})
-
-
-def set_nll(
-    logits: torch.Tensor,
-    accepted: torch.Tensor,
-    class_weights: torch.Tensor | None = None,
-    row_weights: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """Mean negative log-likelihood of the accepted actions: ``-log sum_{a in set} softmax(logits)_a``.
-
-    Args:
-        logits: (B, 5) action logits.
-        accepted: (B, 5) bool, at least one true per row (a one-hot row gives the plain cross-entropy).
-        class_weights: optional (5,) weights; a row weighs the largest weight among its accepted actions
-            (so ``stop_weight`` applies to rows whose answer is ``stop``); the mean is weighted, as in
-            ``torch.nn.functional.cross_entropy``.
-        row_weights: optional (B,) weights multiplying each row's weight (e.g. ``search_weight`` on the
-            no-overlap rows).
-    """
-    log_probs = torch.log_softmax(logits, dim=-1)
-    nll = -torch.logsumexp(log_probs.masked_fill(~accepted, float("-inf")), dim=-1)
-    if class_weights is None and row_weights is None:
-        return nll.mean()
-    w = (accepted.float() * class_weights).amax(dim=-1) if class_weights is not None else torch.ones_like(nll)
-    if row_weights is not None:
-        w = w * row_weights
-    return (w * nll).sum() / w.sum()
-
-
-def beta_at(cfg: DAggerConfig, update: int) -> float:
-    """Oracle-execution probability at ``update`` (0-based): linear from ``beta_start`` to ``beta_end``."""
-    if cfg.beta_decay_updates <= 0:
-        return cfg.beta_end
-    frac = min(1.0, update / cfg.beta_decay_updates)
-    return cfg.beta_start + (cfg.beta_end - cfg.beta_start) * frac
-
-
-# --------------------------------------------------------------------------------------------------
-# Buffer
-# --------------------------------------------------------------------------------------------------
-
-
-class SequenceBuffer:
-    """FIFO ring of ``capacity`` labelled sequences of ``seq_len`` steps on ``device``.
-
-    Per chunk: view, target (L, 3, H, W) uint8; hidden0 (hidden,) the GRU state entering its first step;
-    masks (L,) (0 where an episode starts); labels (L, 5) bool (the accepted actions); aux (L, 3) float
-    (when ``with_aux``).
-    """
-
-    def __init__(
-        self,
-        capacity: int,
-        seq_len: int,
-        height: int,
-        width: int,
-        hidden_size: int,
-        device: torch.device | str = "cpu",
-        with_aux: bool = False,
-    ) -> None:
-        self.capacity, self.seq_len = int(capacity), int(seq_len)
-        self.device = torch.device(device)
-        c, L, kw = self.capacity, self.seq_len, {"device": self.device}
-        self.view = torch.empty(c, L, 3, height, width, dtype=torch.uint8, **kw)
-        self.target = torch.empty(c, L, 3, height, width, dtype=torch.uint8, **kw)
-        self.hidden0 = torch.empty(c, hidden_size, **kw)
-        self.masks = torch.empty(c, L, **kw)
-        self.labels = torch.empty(c, L, NUM_ACTIONS, dtype=torch.bool, **kw)
-        self.weights = torch.ones(c, L, **kw)
-        self.aux = torch.empty(c, L, AUX_SIZE, **kw) if with_aux else None
-        self.pos = 0  # next slot to write
-        self.size = 0  # filled slots
-
-    def __len__(self) -> int:
-        return self.size
-
-    def add(
-        self,
-        view: torch.Tensor,
-        target: torch.Tensor,
-        hidden0: torch.Tensor,
-        masks: torch.Tensor,
-        labels: torch.Tensor,
-        aux: torch.Tensor | None = None,
-        weights: torch.Tensor | None = None,
-    ) -> None:
-        """Append ``n`` chunks given time-major: view / target (L, n, 3, H, W), hidden0 (n, hidden), masks
-        (L, n), labels (L, n, 5) bool, aux (L, n, 3), weights (L, n) loss weights (default 1). The oldest
-        chunks are overwritten when full."""
-        n = hidden0.shape[0]
-        if n > self.capacity:  # keep the newest
-            keep = slice(n - self.capacity, n)
-            view, target, masks, labels = view[:, keep], target[:, keep], masks[:, keep], labels[:, keep]
-            hidden0 = hidden0[keep]
-            aux = None if aux is None else aux[:, keep]
-            weights = None if weights is None else weights[:, keep]
-            n = self.capacity
-        slots = (torch.arange(n) + self.pos) % self.capacity
-        slots = slots.to(self.device)
-        self.view[slots] = view.transpose(0, 1).to(self.device)
-        self.target[slots] = target.transpose(0, 1).to(self.device)
-        self.hidden0[slots] = hidden0.to(self.device)
-        self.masks[slots] = masks.transpose(0, 1).to(self.device, torch.float32)
-        self.labels[slots] = labels.transpose(0, 1).to(self.device, torch.bool)
-        self.weights[slots] = 1.0 if weights is None else weights.transpose(0, 1).to(self.device, torch.float32)
-        if self.aux is not None:
-            if aux is None:
-                raise ValueError("this buffer stores aux targets; add() needs aux")
-            self.aux[slots] = aux.transpose(0, 1).to(self.device, torch.float32)
-        self.pos = (self.pos + n) % self.capacity
-        self.size = min(self.capacity, self.size + n)
-
-    def sample(self, count: int, generator: torch.Generator) -> torch.Tensor:
-        """``min(count, size)`` distinct chunk indices, uniform (CPU ``generator``)."""
-        if self.size == 0:
-            raise ValueError("the DAgger buffer is empty")
-        return torch.randperm(self.size, generator=generator)[: min(count, self.size)].to(self.device)
-
-    def batch(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The chunks ``index`` (b,), time-major flattened like a rollout: obs (L*b, 3, H, W), masks (L*b,),
-        labels (L*b, 5), weights (L*b,), aux (L*b, 3) or absent, hidden0 (b, hidden)."""
-
-        def tm(x: torch.Tensor) -> torch.Tensor:
-            return x[index].transpose(0, 1).flatten(0, 1)
-
-        out = {
-            "view": tm(self.view),
-            "target": tm(self.target),
-            "masks": tm(self.masks),
-            "labels": tm(self.labels),
-            "weights": tm(self.weights),
-            "hidden0": self.hidden0[index],
-        }
-        if self.aux is not None:
-            out["aux"] = tm(self.aux)
-        return out
-
-    def state_dict(self) -> dict[str, Any]:
-        """The filled part (CPU tensors) and the write position."""
-        n = self.size
-        state: dict[str, Any] = {
-            "pos": self.pos,
-            "size": n,
-            "view": self.view[:n].cpu().clone(),
-            "target": self.target[:n].cpu().clone(),
-            "hidden0": self.hidden0[:n].cpu().clone(),
-            "masks": self.masks[:n].cpu().clone(),
-            "labels": self.labels[:n].cpu().clone(),
-            "weights": self.weights[:n].cpu().clone(),
-        }
-        if self.aux is not None:
-            state["aux"] = self.aux[:n].cpu().clone()
-        return state
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        n = int(state["size"])
-        if n > self.capacity:
-            raise ValueError(
-                f"saved DAgger buffer holds {n} chunks, this one only {self.capacity} (dagger.buffer_size)"
-            )
-        if tuple(state["view"].shape[1:]) != tuple(self.view.shape[1:]):
-            raise ValueError(
-                f"saved DAgger buffer chunks are {tuple(state['view'].shape[1:])}, "
-                f"expected {tuple(self.view.shape[1:])}"
-            )
-        for name in ("view", "target", "hidden0", "masks", "labels"):
-            getattr(self, name)[:n] = state[name].to(self.device)
-        self.weights[:n] = state["weights"].to(self.device) if state.get("weights") is not None else 1.0
-        if self.aux is not None:
-            if state.get("aux") is None:
-                raise ValueError("saved DAgger buffer has no aux targets but dagger.aux_coef > 0")
-            self.aux[:n] = state["aux"].to(self.device)
-        self.size, self.pos = n, int(state["pos"]) % self.capacity
 
 
 # --------------------------------------------------------------------------------------------------

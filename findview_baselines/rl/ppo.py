@@ -26,7 +26,8 @@ import torch
 from torch import nn
 
 from findview_baselines.rl import distributed
-from findview_baselines.rl.policy import AuxHead, Policy, aux_loss
+from findview_baselines.rl.aux_head import AuxHead, aux_loss
+from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.storage import RolloutStorage
 
 

@@ -32,9 +32,10 @@ from torch.distributions import Distribution
 from findview.task.oracle import rotation_labels
 from findview_baselines.rl import distributed
 from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
-from findview_baselines.rl.policy import Policy, check_signature
+from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.ppo import PPO, PPOConfig
 from findview_baselines.rl.scheduler import DifficultyScheduler
+from findview_baselines.rl.signature import check_signature
 from findview_baselines.rl.storage import RolloutStorage
 
 __all__ = ["PPOTrainer", "UpdateAbandoned", "no_distribution_validation", "TIMING_KEYS"]

@@ -57,10 +57,11 @@ from findview_baselines.rl.checkpoint import (
     restore_rng_state,
     save_checkpoint,
 )
-from findview_baselines.rl.policy import Policy, build_policy, check_signature
+from findview_baselines.rl.policy import Policy, build_policy
 from findview_baselines.rl.ppo_trainer import UpdateAbandoned, no_distribution_validation
 from findview_baselines.rl.safety import RunFolderBusy, RunLock, StopOnSignal
 from findview_baselines.rl.scheduler import DifficultyScheduler
+from findview_baselines.rl.signature import check_signature
 
 log = logging.getLogger(__name__)
 

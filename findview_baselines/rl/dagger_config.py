@@ -1,0 +1,113 @@
+"""The hyper-parameters of DAgger (``trainer=dagger``): :class:`DAggerConfig` (validated on construction)
+and the oracle-execution schedule :func:`beta_at` (the probability of executing the oracle's action at an
+update). The trainer that uses them is ``dagger.py``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
+
+from findview.task.oracle import ORDERS, SEARCH_PRIORS
+
+__all__ = ["DAggerConfig", "LABEL_MODES", "beta_at"]
+
+LABEL_MODES = ("action", "set")
+
+
+@dataclass
+class DAggerConfig:
+    """DAgger hyper-parameters (``trainer=dagger``). Units: steps are environment steps of one env."""
+
+    lr: float = 1e-3
+    """Adam learning rate."""
+    adam_eps: float = 1e-5
+    """Adam epsilon."""
+    max_grad_norm: float = 1.0
+    """Gradient norm clip (over the policy and the aux head)."""
+    linear_decay: bool = False
+    """Decay the learning rate linearly to 0 over the run's ``total_updates``."""
+    rollout_steps: int = 32
+    """Steps per environment per update (a multiple of ``seq_len``)."""
+    seq_len: int = 16
+    """Length (steps) of the sequences the GRU trains on; chunks of the rollout go into the buffer."""
+    buffer_size: int = 16384
+    """Buffer capacity in labelled steps (``buffer_size // seq_len`` chunks, FIFO)."""
+    epochs: float = 4.0
+    """Gradient steps per update = ceil(epochs * new chunks / batch_sequences): on average each new chunk is
+    used ``epochs`` times while it is the newest data (older chunks keep being sampled)."""
+    batch_sequences: int = 16
+    """Chunks per mini-batch (``batch_sequences * seq_len`` labelled steps)."""
+    beta_start: float = 1.0
+    """Probability (per env, per step) of executing the oracle's label instead of the learner's action at
+    update 0."""
+    beta_end: float = 0.0
+    """That probability from update ``beta_decay_updates`` on."""
+    beta_decay_updates: int = 60
+    """Updates over which beta falls linearly from ``beta_start`` to ``beta_end`` (0: ``beta_end`` at once)."""
+    stop_weight: float = 1.0
+    """Cross-entropy class weight of ``stop`` (the four moves weigh 1): above 1 penalises missed stops more."""
+    search_weight: float = 1.0
+    """Loss weight of the steps where view and target do not overlap (the search prior's labels; 1 = as
+    any step). Hard episodes are long, so at the last curriculum level most labelled steps are "pan right":
+    below 1 keeps them from drowning the few steps that find and stop on the target."""
+    search_prior: str = "pan"
+    """Labels where view and target do not overlap: ``pan`` (pan right until they do), ``sweep`` (match
+    pitch, then pan right) or ``oracle`` (the true shortest path, which a learner cannot see)."""
+    order: str = "pitch_first"
+    """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
+    ``pitch_first``, ``yaw_first`` or ``larger_first``."""
+    labels: str = "action"
+    """``action``: the oracle's one action (cross-entropy); ``set``: any shortest-path action is right
+    (likelihood of the set)."""
+    sample_actions: bool = False
+    """The learner executes sampled actions (true) or its argmax, as at evaluation (false)."""
+    aux_coef: float = 0.0
+    """Weight of the auxiliary rotation / overlap loss (0 = off)."""
+    save_buffer: bool = True
+    """Store the buffer in ``state_dict`` (exact resume, large checkpoints); false: a resume refills it."""
+
+    def __post_init__(self) -> None:
+        positive = ("lr", "rollout_steps", "seq_len", "buffer_size", "batch_sequences", "epochs")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"dagger.{name} must be positive, got {getattr(self, name)!r}")
+        if self.rollout_steps % self.seq_len:
+            raise ValueError(
+                f"dagger.rollout_steps ({self.rollout_steps}) must be a multiple of dagger.seq_len ({self.seq_len})"
+            )
+        if self.buffer_size < self.seq_len:
+            raise ValueError(
+                f"dagger.buffer_size ({self.buffer_size}) must hold one sequence of {self.seq_len} steps"
+            )
+        for name in ("beta_start", "beta_end"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        if self.beta_decay_updates < 0:
+            raise ValueError(f"dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
+        if self.search_weight <= 0:
+            raise ValueError(f"dagger.search_weight must be positive, got {self.search_weight!r}")
+        if self.stop_weight <= 0 or self.aux_coef < 0 or self.max_grad_norm <= 0:
+            raise ValueError(
+                f"dagger: need stop_weight > 0, aux_coef >= 0, max_grad_norm > 0; got {self.stop_weight}, "
+                f"{self.aux_coef}, {self.max_grad_norm}"
+            )
+        if self.search_prior not in SEARCH_PRIORS:
+            raise ValueError(f"dagger.search_prior must be one of {SEARCH_PRIORS}, got {self.search_prior!r}")
+        if self.labels not in LABEL_MODES:
+            raise ValueError(f"dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
+        if self.order not in ORDERS:
+            raise ValueError(f"dagger.order must be one of {ORDERS}, got {self.order!r}")
+
+    @classmethod
+    def from_mapping(cls, cfg: Mapping[str, Any]) -> "DAggerConfig":
+        """Pick the known keys of a (Hydra / dict) config; other keys are ignored."""
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: cfg[k] for k in known if k in cfg})
+
+
+def beta_at(cfg: DAggerConfig, update: int) -> float:
+    """Oracle-execution probability at ``update`` (0-based): linear from ``beta_start`` to ``beta_end``."""
+    if cfg.beta_decay_updates <= 0:
+        return cfg.beta_end
+    frac = min(1.0, update / cfg.beta_decay_updates)
+    return cfg.beta_start + (cfg.beta_end - cfg.beta_start) * frac

@@ -1,0 +1,147 @@
+"""The replay buffer of DAgger: :class:`SequenceBuffer`, a FIFO ring of labelled sequences (images, GRU
+state at the sequence start, episode masks, accepted actions, loss weights, auxiliary targets) that the
+trainer samples mini-batches of chunks from and stores in its checkpoints."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import torch
+
+from findview.task import NUM_ACTIONS
+from findview_baselines.rl.storage import AUX_SIZE
+
+__all__ = ["SequenceBuffer"]
+
+
+class SequenceBuffer:
+    """FIFO ring of ``capacity`` labelled sequences of ``seq_len`` steps on ``device``.
+
+    Per chunk: view, target (L, 3, H, W) uint8; hidden0 (hidden,) the GRU state entering its first step;
+    masks (L,) (0 where an episode starts); labels (L, 5) bool (the accepted actions); aux (L, 3) float
+    (when ``with_aux``).
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        seq_len: int,
+        height: int,
+        width: int,
+        hidden_size: int,
+        device: torch.device | str = "cpu",
+        with_aux: bool = False,
+    ) -> None:
+        self.capacity, self.seq_len = int(capacity), int(seq_len)
+        self.device = torch.device(device)
+        c, L, kw = self.capacity, self.seq_len, {"device": self.device}
+        self.view = torch.empty(c, L, 3, height, width, dtype=torch.uint8, **kw)
+        self.target = torch.empty(c, L, 3, height, width, dtype=torch.uint8, **kw)
+        self.hidden0 = torch.empty(c, hidden_size, **kw)
+        self.masks = torch.empty(c, L, **kw)
+        self.labels = torch.empty(c, L, NUM_ACTIONS, dtype=torch.bool, **kw)
+        self.weights = torch.ones(c, L, **kw)
+        self.aux = torch.empty(c, L, AUX_SIZE, **kw) if with_aux else None
+        self.pos = 0  # next slot to write
+        self.size = 0  # filled slots
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(
+        self,
+        view: torch.Tensor,
+        target: torch.Tensor,
+        hidden0: torch.Tensor,
+        masks: torch.Tensor,
+        labels: torch.Tensor,
+        aux: torch.Tensor | None = None,
+        weights: torch.Tensor | None = None,
+    ) -> None:
+        """Append ``n`` chunks given time-major: view / target (L, n, 3, H, W), hidden0 (n, hidden), masks
+        (L, n), labels (L, n, 5) bool, aux (L, n, 3), weights (L, n) loss weights (default 1). The oldest
+        chunks are overwritten when full."""
+        n = hidden0.shape[0]
+        if n > self.capacity:  # keep the newest
+            keep = slice(n - self.capacity, n)
+            view, target, masks, labels = view[:, keep], target[:, keep], masks[:, keep], labels[:, keep]
+            hidden0 = hidden0[keep]
+            aux = None if aux is None else aux[:, keep]
+            weights = None if weights is None else weights[:, keep]
+            n = self.capacity
+        slots = (torch.arange(n) + self.pos) % self.capacity
+        slots = slots.to(self.device)
+        self.view[slots] = view.transpose(0, 1).to(self.device)
+        self.target[slots] = target.transpose(0, 1).to(self.device)
+        self.hidden0[slots] = hidden0.to(self.device)
+        self.masks[slots] = masks.transpose(0, 1).to(self.device, torch.float32)
+        self.labels[slots] = labels.transpose(0, 1).to(self.device, torch.bool)
+        self.weights[slots] = 1.0 if weights is None else weights.transpose(0, 1).to(self.device, torch.float32)
+        if self.aux is not None:
+            if aux is None:
+                raise ValueError("this buffer stores aux targets; add() needs aux")
+            self.aux[slots] = aux.transpose(0, 1).to(self.device, torch.float32)
+        self.pos = (self.pos + n) % self.capacity
+        self.size = min(self.capacity, self.size + n)
+
+    def sample(self, count: int, generator: torch.Generator) -> torch.Tensor:
+        """``min(count, size)`` distinct chunk indices, uniform (CPU ``generator``)."""
+        if self.size == 0:
+            raise ValueError("the DAgger buffer is empty")
+        return torch.randperm(self.size, generator=generator)[: min(count, self.size)].to(self.device)
+
+    def batch(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The chunks ``index`` (b,), time-major flattened like a rollout: obs (L*b, 3, H, W), masks (L*b,),
+        labels (L*b, 5), weights (L*b,), aux (L*b, 3) or absent, hidden0 (b, hidden)."""
+
+        def tm(x: torch.Tensor) -> torch.Tensor:
+            return x[index].transpose(0, 1).flatten(0, 1)
+
+        out = {
+            "view": tm(self.view),
+            "target": tm(self.target),
+            "masks": tm(self.masks),
+            "labels": tm(self.labels),
+            "weights": tm(self.weights),
+            "hidden0": self.hidden0[index],
+        }
+        if self.aux is not None:
+            out["aux"] = tm(self.aux)
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        """The filled part (CPU tensors) and the write position."""
+        n = self.size
+        state: dict[str, Any] = {
+            "pos": self.pos,
+            "size": n,
+            "view": self.view[:n].cpu().clone(),
+            "target": self.target[:n].cpu().clone(),
+            "hidden0": self.hidden0[:n].cpu().clone(),
+            "masks": self.masks[:n].cpu().clone(),
+            "labels": self.labels[:n].cpu().clone(),
+            "weights": self.weights[:n].cpu().clone(),
+        }
+        if self.aux is not None:
+            state["aux"] = self.aux[:n].cpu().clone()
+        return state
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        n = int(state["size"])
+        if n > self.capacity:
+            raise ValueError(
+                f"saved DAgger buffer holds {n} chunks, this one only {self.capacity} (dagger.buffer_size)"
+            )
+        if tuple(state["view"].shape[1:]) != tuple(self.view.shape[1:]):
+            raise ValueError(
+                f"saved DAgger buffer chunks are {tuple(state['view'].shape[1:])}, "
+                f"expected {tuple(self.view.shape[1:])}"
+            )
+        for name in ("view", "target", "hidden0", "masks", "labels"):
+            getattr(self, name)[:n] = state[name].to(self.device)
+        self.weights[:n] = state["weights"].to(self.device) if state.get("weights") is not None else 1.0
+        if self.aux is not None:
+            if state.get("aux") is None:
+                raise ValueError("saved DAgger buffer has no aux targets but dagger.aux_coef > 0")
+            self.aux[:n] = state["aux"].to(self.device)
+        self.size, self.pos = n, int(state["pos"]) % self.capacity

@@ -1,0 +1,35 @@
+"""The checkpoint signature of a policy: the fields a checkpoint must match to be loaded
+(:data:`SIGNATURE_FIELDS`, :data:`OPTIONAL_SIGNATURE_FIELDS`) and :func:`check_signature`, which names the
+first field that differs. The signature itself comes from ``Policy.model_signature``."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+__all__ = ["SIGNATURE_FIELDS", "OPTIONAL_SIGNATURE_FIELDS", "check_signature"]
+
+SIGNATURE_FIELDS = ("variant", "hidden_size", "height", "width")
+# signature fields added later, with the value a checkpoint that lacks them was trained with
+OPTIONAL_SIGNATURE_FIELDS = {"fine_shifts": 0, "fine_scales": 1}
+
+
+def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
+    """Raise ``ValueError`` naming the first field where a checkpoint's model signature differs.
+
+    ``saved`` is the dict stored in the checkpoint, ``current`` the one of the policy being loaded into
+    (both from :meth:`Policy.model_signature`).
+    """
+    for key in SIGNATURE_FIELDS:
+        if key not in saved:
+            raise ValueError(f"checkpoint model signature has no field {key!r} (saved signature: {dict(saved)})")
+        if saved[key] != current.get(key):
+            raise ValueError(
+                f"checkpoint does not fit this model: {key} is {saved[key]!r} in the checkpoint "
+                f"but {current.get(key)!r} in the current config"
+            )
+    for key, default in OPTIONAL_SIGNATURE_FIELDS.items():
+        if saved.get(key, default) != current.get(key, default):
+            raise ValueError(
+                f"checkpoint does not fit this model: {key} is {saved.get(key, default)!r} in the checkpoint "
+                f"but {current.get(key, default)!r} in the current config"
+            )
