@@ -96,6 +96,8 @@ def test_placeholders_and_overrides(tmp_path):
     assert check_docs.substitute("torchrun --nproc_per_node=K tools/train.py", ctx).endswith("=2 tools/train.py")
     ran = check_docs.prepare("python tools/eval.py split=test")
     assert str(REPO / "tools" / "eval.py") in ran and ran.index("split=test") < ran.index("max_episodes=2")
+    # the checker's own command only lists (running it would run every doc again, recursively)
+    assert check_docs.prepare("python tools/check_docs.py README.md").endswith("check_docs.py README.md --list")
     # an error example gets no overrides (they could hide the error)
     assert check_docs.prepare("python tools/train.py trainer.num_envs=abc", overrides=False).endswith("num_envs=abc")
 

@@ -368,6 +368,8 @@ def prepare(cmd: str, overrides: bool = True) -> str:
     script = _script(cmd)
     if script is None:
         return cmd
+    if script == "tools/check_docs.py":  # itself: only list what it would run (running it would recurse)
+        return f"{cmd.replace(script, str(REPO / script), 1)} --list"
     extra = OVERRIDES.get(script, "") if overrides else ""
     if overrides and script in HYDRA_TOOLS:
         extra = f"{extra} {TOOLS}"
