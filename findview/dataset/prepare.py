@@ -368,10 +368,12 @@ def ensure_dataset(
     """Make sure ``splits.json`` and the static episode files for ``fovs`` exist and match ``dataset_cfg``;
     returns the absolute ``out_dir``.
 
-    Missing files are made (and the synthetic images generated); existing files are never rewritten. An
-    episode file made with more episodes per image than ``dataset.episodes_per_image`` (all other settings
-    equal) is accepted: its first ``K`` episodes per image per difficulty are the ones asked for (read them
-    with ``load_episodes(path, episodes_per_image=K)``).
+    Missing files are made (and the synthetic images generated); existing files are never rewritten, with
+    one exception that changes no episode: a nested episode file with fewer episodes per image than
+    ``dataset.episodes_per_image`` asks for (all other settings equal) is replaced by the file made with
+    ``K``, whose first episodes per image are the ones it held. An episode file made with more episodes per
+    image (all other settings equal) is accepted: its first ``K`` episodes per image per difficulty are the
+    ones asked for (read them with ``load_episodes(path, episodes_per_image=K)``).
     Train / eval call this with ``cfg.dataset``, ``[cfg.sim.fov]`` and ``pitch_bound=task.pitch_bound``,
     then read the files with :func:`findview.dataset.episode_file` / :func:`findview.dataset.load_episodes`
     / :func:`findview.dataset.load_split`.
@@ -496,7 +498,10 @@ def _build(
             summary.episode_counts[key] = dict(header.get("difficulty_counts", {}))
             summary.episodes_reused[key] = True
             continue
-        if not rewrite and path.is_file():
+        if not rewrite and path.is_file() and header is not None and _extendable(header, fp, split, fov, st):
+            # a nested file with fewer episodes per image: the file made with K keeps them as its first ones
+            say(f"extending {path} from {header['episodes_per_image']} to {K} episodes per image (its episodes stay)")
+        elif not rewrite and path.is_file():
             counts = _superset_counts(path, header, fp, split, fov, st) if header is not None else None
             if counts is not None:  # more episodes per image than asked for: the tool takes the first K
                 summary.episode_counts[key] = counts
@@ -522,6 +527,17 @@ def _build(
         summary.episodes_reused[key] = False
         say(f"wrote {path}")
     return summary
+
+
+def _extendable(header: Mapping[str, Any], splits_fp: str, split: str, fov: float, st: Mapping[str, Any]) -> bool:
+    """Whether an episode file holds fewer episodes per image than ``dataset.episodes_per_image`` asks for,
+    is nested (its episodes are the first ones of the file made with more) and matches in everything else:
+    then the file made with more episodes per image replaces it without changing any episode it held."""
+    have, want = header.get("episodes_per_image"), int(st["episodes_per_image"])
+    if isinstance(have, bool) or not isinstance(have, int) or have >= want:
+        return False
+    nested = header.get("nested") is True or have <= 1  # K = 1 files were always the k = 0 stream
+    return nested and header.get("fingerprint") == _episodes_fingerprint(splits_fp, split, fov, have, st)
 
 
 def _superset_counts(
