@@ -70,33 +70,33 @@ class DAggerConfig:
         positive = ("lr", "rollout_steps", "seq_len", "buffer_size", "batch_sequences", "epochs")
         for name in positive:
             if not getattr(self, name) > 0:
-                raise ValueError(f"dagger.{name} must be positive, got {getattr(self, name)!r}")
+                raise ValueError(f"trainer.dagger.{name} must be positive, got {getattr(self, name)!r}")
         if self.rollout_steps % self.seq_len:
             raise ValueError(
-                f"dagger.rollout_steps ({self.rollout_steps}) must be a multiple of dagger.seq_len ({self.seq_len})"
+                f"trainer.dagger.rollout_steps ({self.rollout_steps}) must be a multiple of trainer.dagger.seq_len ({self.seq_len})"
             )
         if self.buffer_size < self.seq_len:
             raise ValueError(
-                f"dagger.buffer_size ({self.buffer_size}) must hold one sequence of {self.seq_len} steps"
+                f"trainer.dagger.buffer_size ({self.buffer_size}) must hold one sequence of {self.seq_len} steps"
             )
         for name in ("beta_start", "beta_end"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
+                raise ValueError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
         if self.beta_decay_updates < 0:
-            raise ValueError(f"dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
+            raise ValueError(f"trainer.dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
         if self.search_weight <= 0:
-            raise ValueError(f"dagger.search_weight must be positive, got {self.search_weight!r}")
+            raise ValueError(f"trainer.dagger.search_weight must be positive, got {self.search_weight!r}")
         if self.stop_weight <= 0 or self.aux_coef < 0 or self.max_grad_norm <= 0:
             raise ValueError(
                 f"dagger: need stop_weight > 0, aux_coef >= 0, max_grad_norm > 0; got {self.stop_weight}, "
                 f"{self.aux_coef}, {self.max_grad_norm}"
             )
         if self.search_prior not in SEARCH_PRIORS:
-            raise ValueError(f"dagger.search_prior must be one of {SEARCH_PRIORS}, got {self.search_prior!r}")
+            raise ValueError(f"trainer.dagger.search_prior must be one of {SEARCH_PRIORS}, got {self.search_prior!r}")
         if self.labels not in LABEL_MODES:
-            raise ValueError(f"dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
+            raise ValueError(f"trainer.dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
         if self.order not in ORDERS:
-            raise ValueError(f"dagger.order must be one of {ORDERS}, got {self.order!r}")
+            raise ValueError(f"trainer.dagger.order must be one of {ORDERS}, got {self.order!r}")
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "DAggerConfig":
