@@ -233,7 +233,7 @@ def test_labels_from_an_env_object() -> None:
 
 
 def test_config_validation_and_beta_schedule() -> None:
-    with pytest.raises(ValueError, match="multiple of dagger.seq_len"):
+    with pytest.raises(ValueError, match="multiple of trainer.dagger.seq_len"):
         DAggerConfig(rollout_steps=30, seq_len=16)
     with pytest.raises(ValueError, match="beta_end"):
         DAggerConfig(beta_end=1.5)
