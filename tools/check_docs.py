@@ -371,6 +371,8 @@ def prepare(cmd: str, overrides: bool = True) -> str:
     if script == "tools/check_docs.py":  # itself: only list what it would run (running it would recurse)
         return f"{cmd.replace(script, str(REPO / script), 1)} --list"
     extra = OVERRIDES.get(script, "") if overrides else ""
+    if overrides and script == "tools/train.py" and "init_from=" in cmd:
+        extra = extra.replace("agent.hidden_size=32", "")  # the network must fit the checkpoint it starts from
     if overrides and script in HYDRA_TOOLS:
         extra = f"{extra} {TOOLS}"
     if overrides and script == "tools/eval.py" and "checkpoint=" not in cmd:
