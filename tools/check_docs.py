@@ -129,7 +129,7 @@ def substitute(cmd: str, ctx: Context) -> str:
 TRAIN = ("trainer.num_updates=2 trainer.val_interval=1 trainer.val_episodes=2 trainer.val_num_envs=2 "
          "trainer.val_max_steps=30 trainer.num_envs=2 trainer.log_interval=1 trainer.checkpoint_interval=1 "
          "trainer.progress=false trainer.dagger.rollout_steps=8 trainer.dagger.seq_len=8 trainer.dagger.epochs=1 "
-         "agent.rollout_steps=8 agent.ppo_epochs=1 agent.hidden_size=32 task.max_steps=300 sim.height=64 sim.width=64")
+         "agent.rollout_steps=8 agent.ppo_epochs=1 task.max_steps=300 sim.height=64 sim.width=64")
 EVAL = "max_episodes=2 task.max_steps=30 progress=false"
 # every tools/ command: smaller synthetic panoramas (generated in seconds, not 20 s; a synthetic-only key)
 TOOLS = "dataset.width=256"
@@ -371,8 +371,6 @@ def prepare(cmd: str, overrides: bool = True) -> str:
     if script == "tools/check_docs.py":  # itself: only list what it would run (running it would recurse)
         return f"{cmd.replace(script, str(REPO / script), 1)} --list"
     extra = OVERRIDES.get(script, "") if overrides else ""
-    if overrides and script == "tools/train.py" and "init_from=" in cmd:
-        extra = extra.replace("agent.hidden_size=32", "")  # the network must fit the checkpoint it starts from
     if overrides and script in HYDRA_TOOLS:
         extra = f"{extra} {TOOLS}"
     if overrides and script == "tools/eval.py" and "checkpoint=" not in cmd:
