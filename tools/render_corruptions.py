@@ -88,10 +88,7 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
         if cfg.get("image") is None or cfg.get("target") is None:
             raise EvalError("explicit mode needs both image= and target=")
         image = str(Path(str(cfg.image)).expanduser())
-        try:
-            target = parse_rotation(cfg.target, "target")
-        except ValueError as err:  # a value typed on the command line
-            raise EvalError(str(err)) from None
+        target = parse_rotation(cfg.target, "target")
         name = Path(image).stem
     else:
         episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides, logger=log)

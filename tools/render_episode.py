@@ -43,10 +43,7 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
         if missing:
             raise EvalError(f"explicit mode needs image=, init= and target=; missing: {', '.join(missing)}")
         image = str(Path(str(cfg.image)).expanduser())
-        try:
-            init, target = parse_rotation(cfg.init, "init"), parse_rotation(cfg.target, "target")
-        except ValueError as err:  # a value typed on the command line
-            raise EvalError(str(err)) from None
+        init, target = parse_rotation(cfg.init, "init"), parse_rotation(cfg.target, "target")
         name = Path(image).stem
     else:
         episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides, logger=log)

@@ -498,15 +498,14 @@ def _build(
             summary.episode_counts[key] = dict(header.get("difficulty_counts", {}))
             summary.episodes_reused[key] = True
             continue
-        if not rewrite and path.is_file() and header is not None and _extendable(header, fp, split, fov, st):
-            # a nested file with fewer episodes per image: the file made with K keeps them as its first ones
-            say(f"extending {path} from {header['episodes_per_image']} to {K} episodes per image (its episodes stay)")
+        have = _made_with_k(header, fp, split, fov, st) if not rewrite and header is not None else None
+        if have is not None and have > K:  # more episodes per image than asked for: the tool takes the first K
+            summary.episode_counts[key] = {d: int(n) * K // have for d, n in header["difficulty_counts"].items()}
+            summary.episodes_reused[key] = True
+            continue
+        if have is not None:  # fewer: the file made with K keeps the ones it holds as its first ones (nested)
+            say(f"extending {path} from {have} to {K} episodes per image (its episodes stay)")
         elif not rewrite and path.is_file():
-            counts = _superset_counts(path, header, fp, split, fov, st) if header is not None else None
-            if counts is not None:  # more episodes per image than asked for: the tool takes the first K
-                summary.episode_counts[key] = counts
-                summary.episodes_reused[key] = True
-                continue
             why = "unreadable header" if header is None else _episodes_mismatch(header, st)
             fix = {} if header is None else {
                 k: new for k, (old, new) in _episodes_recorded(header, st).items() if old != new
@@ -529,36 +528,11 @@ def _build(
     return summary
 
 
-def _extendable(header: Mapping[str, Any], splits_fp: str, split: str, fov: float, st: Mapping[str, Any]) -> bool:
-    """Whether an episode file holds fewer episodes per image than ``dataset.episodes_per_image`` asks for,
-    is nested (its episodes are the first ones of the file made with more) and matches in everything else:
-    then the file made with more episodes per image replaces it without changing any episode it held."""
-    have, want = header.get("episodes_per_image"), int(st["episodes_per_image"])
-    if isinstance(have, bool) or not isinstance(have, int) or have >= want:
-        return False
-    nested = header.get("nested") is True or have <= 1  # K = 1 files were always the k = 0 stream
-    return nested and header.get("fingerprint") == _episodes_fingerprint(splits_fp, split, fov, have, st)
-
-
-def _superset_counts(
-    path: Path, header: Mapping[str, Any], splits_fp: str, split: str, fov: float, st: Mapping[str, Any]
-) -> dict[str, int] | None:
-    """Episodes per difficulty that a tool asking for ``K = dataset.episodes_per_image`` takes from an
-    episode file made with ``K' > K`` and otherwise the same settings (its first ``K`` per image per
-    difficulty); ``None`` when the file differs in anything else.
-
-    Raises:
-        DatasetError: the file matches except that it holds fewer episodes per image than asked for.
-    """
-    have, want = header.get("episodes_per_image"), int(st["episodes_per_image"])
+def _made_with_k(header: Mapping[str, Any], splits_fp: str, split: str, fov: float, st: Mapping[str, Any]) -> int | None:
+    """The ``episodes_per_image`` an episode file was made with, when it matches ``st`` in every other setting
+    (``None`` otherwise). The fingerprint includes the nested layout of ``K > 1`` files, so such a file is
+    nested: its first ``k`` episodes per image are the file made with ``k``, for any ``k``."""
+    have = header.get("episodes_per_image")
     if isinstance(have, bool) or not isinstance(have, int):
         return None
-    if header.get("fingerprint") != _episodes_fingerprint(splits_fp, split, fov, have, st):
-        return None
-    if have < want:
-        raise DatasetError(
-            f"{path} holds {have} episode(s) per image per difficulty (dataset.episodes_per_image={have}) but "
-            f"this run asks for {want}: make them with: {make_dataset_command(st, episodes_per_image=want)} "
-            f"plus this run's other dataset.* overrides (or run with dataset.episodes_per_image={have})"
-        )
-    return {d: int(n) * want // have for d, n in dict(header.get("difficulty_counts", {})).items()}
+    return have if header.get("fingerprint") == _episodes_fingerprint(splits_fp, split, fov, have, st) else None

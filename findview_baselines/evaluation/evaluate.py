@@ -138,8 +138,7 @@ def resolve_episodes(
             raise EvalError(f"dataset.out_dir is not set for data set {name!r}")
         out_dir = os.path.abspath(os.path.expanduser(str(out_dir)))
         path = episode_file(out_dir, split, fov)
-        synthetic = _get(cfg, "dataset.kind") == "synthetic"
-        if not synthetic and not path.is_file():
+        if _get(cfg, "dataset.kind") != "synthetic" and not path.is_file():  # only synthetic data is made here
             raise EvalError(
                 f"no {split} episodes for data set {name!r} at FoV {fov:g}: {path} does not exist.\n"
                 f"Make them with:\n  {make_dataset_command(cfg, dataset_choice, overrides)}"
@@ -156,12 +155,7 @@ def resolve_episodes(
             )
         except SamplingError as err:  # SamplingError is a RuntimeError: give it the data set's context
             raise EvalError(f"cannot make the episodes of data set {name!r}: {err}") from err
-        path = episode_file(out_dir, split, fov)
-        if not path.is_file():
-            raise EvalError(
-                f"no {split} episodes for data set {name!r} at FoV {fov:g}: {path} does not exist.\n"
-                f"Make them with:\n  {make_dataset_command(cfg, dataset_choice, overrides)}"
-            )
+        path = episode_file(out_dir, split, fov)  # ensure_dataset made it or found it
         return load_episodes(path, episodes_per_image=dataset_settings(cfg.dataset)["episodes_per_image"]), path, name
     return load_episodes(path), path, name
 

@@ -346,9 +346,11 @@ def parse_rotation(value: object, what: str) -> tuple[int, int]:
     """``[pitch, yaw]`` (a list or config list of integer degrees) -> ``(pitch, yaw)``.
 
     Raises:
-        ValueError: one line naming ``what`` and the value.
+        ConfigError: (a user error) one line naming ``what`` and the value.
     """
     from omegaconf import OmegaConf
+
+    from findview.config import ConfigError
 
     try:
         seq = list(OmegaConf.to_container(value) if OmegaConf.is_config(value) else value)  # type: ignore[arg-type]
@@ -356,7 +358,7 @@ def parse_rotation(value: object, what: str) -> tuple[int, int]:
             raise ValueError
         return int(float(seq[0])), int(float(seq[1]))
     except (TypeError, ValueError):
-        raise ValueError(f"{what} must be [pitch, yaw] in integer degrees, got {value!r}") from None
+        raise ConfigError(f"{what} must be [pitch, yaw] in integer degrees, got {value!r}") from None
 
 
 def write_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
