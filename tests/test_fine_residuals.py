@@ -128,3 +128,15 @@ def test_direct_policy_runs_and_has_no_image_convolutions_to_train() -> None:
     assert dist.logits.shape == (3, 5) and torch.isfinite(dist.logits).all() and values.shape == (3,)
     with pytest.raises(ValueError, match="fine_scales=6"):
         DirectEncoder(64, 64, 16, fine_shifts=2, fine_scales=6)
+
+
+def test_direct_weights_initialise_a_robust_policy_but_never_stand_in_for_it() -> None:
+    direct = Policy(32, 32, "direct", 16, fine_shifts=1, fine_scales=2)
+    robust = Policy(32, 32, "robust", 16, fine_shifts=1, fine_scales=2)
+    check_signature(direct.model_signature(), robust.model_signature(), transfer=True)  # init_from
+    robust.load_state_dict(direct.state_dict())  # same parameter names and shapes
+    with pytest.raises(ValueError, match="variant is 'direct' in the checkpoint but 'robust'"):
+        check_signature(direct.model_signature(), robust.model_signature())  # eval / resume
+    corr = Policy(32, 32, "correlation", 16, fine_shifts=1, fine_scales=2)
+    with pytest.raises(ValueError, match="variant is 'direct' in the checkpoint but 'correlation'"):
+        check_signature(direct.model_signature(), corr.model_signature(), transfer=True)

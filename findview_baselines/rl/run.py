@@ -161,14 +161,16 @@ def select_val_episodes(episodes: Sequence[Any], cap: int | None) -> list[Any]:
     return out
 
 
-def load_policy(path: str | Path, policy: Policy) -> dict[str, Any]:
+def load_policy(path: str | Path, policy: Policy, transfer: bool = False) -> dict[str, Any]:
     """Load the weights of a checkpoint into ``policy`` after checking its signature; returns the checkpoint.
 
+    ``transfer=True`` (``init_from``) also accepts a checkpoint of a variant with the same parameters
+    (``rl/signature.py: TRANSFERABLE_VARIANTS``, e.g. a ``direct`` agent initialising a ``robust`` one).
     Raises ``UserError`` naming the file and the first differing model field.
     """
     state = load_checkpoint(path, map_location=next(policy.parameters()).device)
     try:
-        check_signature(state["signature"], policy.model_signature())
+        check_signature(state["signature"], policy.model_signature(), transfer=transfer)
     except ValueError as err:
         raise UserError(f"{path}: {err} (use a checkpoint of the same agent.variant / agent.hidden_size / "
                         f"view size, or drop init_from)") from None
@@ -750,7 +752,7 @@ def _train_locked(cfg: Any, run_dir: Path, stop: Any, progress: bool | None) -> 
                                   f"continue, environments restart with re-seeded episodes")
     else:
         if conf.get("init_from"):
-            state = load_policy(Path(str(conf["init_from"])).expanduser(), policy)
+            state = load_policy(Path(str(conf["init_from"])).expanduser(), policy, transfer=True)
             log.info("initialised the weights from %s (update %s of that run); fresh optimizer",
                      conf["init_from"], state.get("update"))
         algo.start()

@@ -6,22 +6,29 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-__all__ = ["SIGNATURE_FIELDS", "OPTIONAL_SIGNATURE_FIELDS", "check_signature"]
+__all__ = ["SIGNATURE_FIELDS", "OPTIONAL_SIGNATURE_FIELDS", "TRANSFERABLE_VARIANTS", "check_signature"]
 
 SIGNATURE_FIELDS = ("variant", "hidden_size", "height", "width")
 # signature fields added later, with the value a checkpoint that lacks them was trained with
 OPTIONAL_SIGNATURE_FIELDS = {"fine_shifts": 0, "fine_scales": 1}
+# variants with the same parameters (names and shapes) that differ only in how they prepare their inputs:
+# weights of one may initialise the other (``init_from``), never be evaluated or resumed as the other
+TRANSFERABLE_VARIANTS = (frozenset({"direct", "robust"}),)
 
 
-def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
+def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any], transfer: bool = False) -> None:
     """Raise ``ValueError`` naming the first field where a checkpoint's model signature differs.
 
     ``saved`` is the dict stored in the checkpoint, ``current`` the one of the policy being loaded into
-    (both from :meth:`Policy.model_signature`).
+    (both from :meth:`Policy.model_signature`). ``transfer=True`` (weights that only initialise a new run,
+    ``init_from``) also accepts a variant of the same :data:`TRANSFERABLE_VARIANTS` family.
     """
     for key in SIGNATURE_FIELDS:
         if key not in saved:
             raise ValueError(f"checkpoint model signature has no field {key!r} (saved signature: {dict(saved)})")
+        if key == "variant" and transfer and any({saved[key], current.get(key)} <= family
+                                                 for family in TRANSFERABLE_VARIANTS):
+            continue
         if saved[key] != current.get(key):
             raise ValueError(
                 f"checkpoint does not fit this model: {key} is {saved[key]!r} in the checkpoint "
