@@ -3,7 +3,7 @@
     python benchmarks/bench_distributed.py                     # 1 vs 2 processes, 8 envs per process
     python benchmarks/bench_distributed.py --procs 1 2 4 --updates 6 --size 64 --envs 8
 
-Every run is the real training loop (``findview_baselines.rl.run.train``) on the synthetic data set
+Every run is the real training loop (``findview_baselines.training.train``) on the synthetic data set
 (procedural panoramas made once under ``--data``), with ``--envs`` environments *per process*, the
 paper's early-fusion network (GRU ``--hidden``), ``--rollout-steps`` steps per update, 4 PPO epochs and no
 validation. K processes are started like torchrun starts them (``env://`` variables, gloo); one process
@@ -42,7 +42,7 @@ def _overrides(args: argparse.Namespace, data: Path, world: int) -> list[str]:
         "dataset=synthetic", f"dataset.root={data / 'images'}", f"dataset.out_dir={data / 'out'}",
         "dataset.num_images=16", "dataset.width=512",
         f"sim.height={args.size}", f"sim.width={args.size}", "sim.device=cpu", "sim.prefetch_workers=0",
-        f"agent.hidden_size={args.hidden}", f"agent.rollout_steps={args.rollout_steps}", "agent.ppo_epochs=4",
+        f"agent.hidden_size={args.hidden}", f"trainer.ppo.rollout_steps={args.rollout_steps}", "trainer.ppo.ppo_epochs=4",
         f"trainer.num_envs={args.envs}", f"trainer.num_updates={args.updates}", "trainer.val_interval=0",
         "trainer.val_at_end=false", "trainer.checkpoint_interval=0", "trainer.log_interval=1000",
         "trainer.progress=false", "trainer.torch_threads=1", "trainer.resume=false",
@@ -58,7 +58,7 @@ def _worker(rank: int, world: int, port: int, args: argparse.Namespace, data: Pa
     if world > 1:
         os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank),
                           WORLD_SIZE=str(world), LOCAL_RANK=str(rank))
-    import findview_baselines.rl.run as run
+    import findview_baselines.training.run as run
     from findview_baselines.cli import compose_config
 
     stamps: list[float] = []
@@ -68,7 +68,7 @@ def _worker(rank: int, world: int, port: int, args: argparse.Namespace, data: Pa
             stamps.append(time.perf_counter())
 
     learn = run.learn
-    run.learn = lambda ctx, callbacks, stop_at, stop: learn(ctx, [Clock(), *callbacks], stop_at, stop)
+    run.learn = lambda ctx, callbacks, stop: learn(ctx, [Clock(), *callbacks], stop)
     cfg = compose_config("train", _overrides(args, data, world))
     result = run.train(cfg, out / f"run_{world}")
     if rank == 0:

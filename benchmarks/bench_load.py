@@ -172,13 +172,14 @@ def path_ppo(files: list[str], size: int, num_envs: int, steps: int) -> Callable
     import torch
 
     from findview_baselines.rl.policy import build_policy
+    from findview_baselines.config import PPOAgentConfig
     from findview_baselines.rl.ppo import PPO, PPOConfig
     from findview_baselines.rl.storage import RolloutStorage
 
     torch.manual_seed(0)
     torch.distributions.Distribution.set_default_validate_args(False)
     env = make_env(files, num_envs, size)
-    policy = build_policy({"variant": "early_fusion", "hidden_size": 512}, size, size)
+    policy = build_policy(PPOAgentConfig(hidden_size=512), size, size)
     cfg = PPOConfig(rollout_steps=steps, ppo_epochs=2)
     ppo = PPO(policy, cfg)
     storage = RolloutStorage(steps, num_envs, size, size, 512)

@@ -3,7 +3,7 @@
 Scaling rule under test: PPO's batch per update is ``num_envs * rollout_steps`` samples. When the number
 of environments grows by ``k`` (more envs on one GPU, or ``k`` DD-PPO ranks whose gradients are
 averaged), keep the **samples per gradient step** and the epochs fixed, i.e. multiply
-``agent.num_mini_batches`` by ``k`` and keep ``agent.lr``: the run then takes the same number of
+``trainer.ppo.num_mini_batches`` by ``k`` and keep ``trainer.ppo.lr``: the run then takes the same number of
 gradient steps per env step as the base run. The alternative ("naive": same ``num_mini_batches``, so
 ``k`` times larger mini-batches and ``k`` times fewer gradient steps per env step) is run beside it, and
 optionally the square-root rule (naive plus ``lr * sqrt(k)``).
@@ -45,7 +45,8 @@ from findview_baselines.agents.ppo_agent import PPOAgent
 from findview_baselines.cli import compose_config
 from findview_baselines.evaluation.harness import run_episodes
 from findview_baselines.rl.policy import build_policy
-from findview_baselines.rl.run import load_policy, train
+from findview_baselines.rl.checkpoint import load_policy  # noqa: E402
+from findview_baselines.training import train
 
 SIZE = 48
 MAX_STEPS = 200
@@ -59,8 +60,8 @@ TOY_WORLD = {
     "sim.height": SIZE, "sim.width": SIZE, "sim.device": "cpu", "sim.prefetch_workers": 0,
     "task.max_steps": MAX_STEPS, "task.pitch_bound": 0,
     "task.reward.name": "bell", "task.reward.alpha": 20.0, "task.reward.beta": 2.0, "task.reward.dist_coef": 1.0,
-    "agent.hidden_size": 64, "agent.rollout_steps": ROLLOUT, "agent.entropy_coef": 0.01,
-    "agent.gamma": 0.9, "agent.gae_lambda": 0.8, "agent.ppo_epochs": 2,
+    "agent.hidden_size": 64, "trainer.ppo.rollout_steps": ROLLOUT, "trainer.ppo.entropy_coef": 0.01,
+    "trainer.ppo.gamma": 0.9, "trainer.ppo.gae_lambda": 0.8, "trainer.ppo.ppo_epochs": 2,
     "trainer.torch_threads": 1, "trainer.val_interval": 0, "trainer.val_at_end": False,
     "trainer.log_interval": 1000, "trainer.checkpoint_interval": 0, "trainer.progress": False,
     "scheduler.num_levels": 1,
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
             seg = n_updates // args.segments
             setup = {**TOY_WORLD, "dataset.root": str(root), "dataset.out_dir": str(work / "dataset"),
                      "trainer.num_envs": r["num_envs"], "trainer.num_updates": n_updates, "trainer.seed": seed,
-                     "agent.num_mini_batches": r["num_mini_batches"], "agent.lr": r["lr"]}
+                     "trainer.ppo.num_mini_batches": r["num_mini_batches"], "trainer.ppo.lr": r["lr"]}
             run_dir = work / f"{name}_s{seed}"
             wall = 0.0
             for k in range(1, args.segments + 1):

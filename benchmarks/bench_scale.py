@@ -47,6 +47,7 @@ from findview.dataset import EpisodeSampler, ImageEntry  # noqa: E402
 from findview.sim import resolve_device  # noqa: E402
 from findview.utils import atomic_write, write_text  # noqa: E402
 from findview_baselines.rl.policy import build_policy  # noqa: E402
+from findview_baselines.config import PPOAgentConfig  # noqa: E402
 from findview_baselines.rl.ppo import PPOConfig  # noqa: E402
 from findview_baselines.rl.ppo_trainer import PPOTrainer, no_distribution_validation  # noqa: E402
 
@@ -109,8 +110,8 @@ def measure(n: int, cfg: SpeedConfig, images: list[ImageEntry], device: torch.de
     sim_cfg = {"fov": FOV, "height": SIZE, "width": SIZE, "device": str(device), "bank_mb": args.bank_mb}
     env = build_sampled_env(sim_cfg, {}, EpisodeSampler(images, FOV, seed=0), n)
     env.source.level = 3
-    agent = {"variant": "early_fusion", "hidden_size": HIDDEN, "precision": cfg.precision,
-             "channels_last": cfg.channels_last, "compile": cfg.compile}
+    agent = PPOAgentConfig(hidden_size=HIDDEN, precision=cfg.precision, channels_last=cfg.channels_last,
+                           compile=cfg.compile)
     policy = build_policy(agent, SIZE, SIZE).to(device)
     trainer = PPOTrainer(env, policy, PPOConfig(rollout_steps=T, num_mini_batches=num_mb), total_updates=10**6, seed=0)
     if device.type == "cuda":

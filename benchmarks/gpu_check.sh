@@ -108,11 +108,11 @@ stage scale 190 "$OUT_DIR/scale.log" "$PY" benchmarks/bench_scale.py --device "$
 WORK="${TMPDIR:-/tmp}/findview_gpu_check"
 rm -rf "$WORK/train"
 if [ "$QUICK" -eq 1 ]; then
-  TRAIN_ARGS=(+experiment=quickstart trainer.num_updates=2 trainer.num_envs=2 agent.rollout_steps=4
+  TRAIN_ARGS=(+experiment=quickstart trainer.num_updates=2 trainer.num_envs=2 trainer.ppo.rollout_steps=4
               trainer.val_episodes=6 trainer.val_interval=0)
 else
   TRAIN_ARGS=(+experiment=quickstart sim.height=256 sim.width=256 agent.hidden_size=512 trainer.num_envs=256
-              agent.rollout_steps=64 agent.num_mini_batches=2 trainer.num_updates=40 trainer.val_interval=20
+              trainer.ppo.rollout_steps=64 trainer.ppo.num_mini_batches=2 trainer.num_updates=40 trainer.val_interval=20
               trainer.val_episodes=48 trainer.log_interval=1 agent.precision=bf16 agent.channels_last=true)
 fi
 stage train 150 "$OUT_DIR/train.log" "$PY" tools/train.py "${TRAIN_ARGS[@]}" sim.device="$DEVICE" \

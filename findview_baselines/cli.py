@@ -37,6 +37,13 @@ from typing import Any, NoReturn
 from omegaconf import DictConfig, OmegaConf
 
 from findview.config import ConfigError
+from findview_baselines.config import (  # re-exported: composition and the one-line errors
+    CONFIG_DIR,
+    compose_config,
+    config_error_line,
+    register_resolvers,
+)
+from findview_baselines.errors import Interrupted, UserError  # re-exported: defined below every layer
 
 __all__ = [
     "Interrupted",
@@ -51,22 +58,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("findview")
-
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-
-
-class UserError(Exception):
-    """A problem the user caused and can fix (bad value, missing file, unwritable folder, ...): the tools
-    print the message as one line and exit with status 2. The message names the file or value and the
-    way out."""
-
-
-class Interrupted(Exception):
-    """A run stopped cleanly on a signal (its resume state written); ``signum`` decides the exit status."""
-
-    def __init__(self, signum: int, message: str) -> None:
-        super().__init__(message)
-        self.signum = int(signum)
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -108,81 +99,9 @@ class ToolContext:
 # ------------------------------------------------------------------------------------------------
 
 
-def run_name_from_checkpoint(path: str) -> str:
-    """A folder name for a checkpoint: ``<run folder>-<file stem>`` for ``<run>/checkpoints/<f>.pth``,
-    else the file stem (``pretrained/cpu_agent.pth`` -> ``cpu_agent``)."""
-    p = Path(str(path))
-    if p.parent.name == "checkpoints" and p.parent.parent.name:
-        return f"{p.parent.parent.name}-{p.stem}"
-    return p.stem
-
-
-def _eval_run_name(agent_choice: Any, checkpoint: Any) -> str:
-    return run_name_from_checkpoint(str(checkpoint)) if checkpoint not in (None, "", "None") else str(agent_choice)
-
-
-def register_resolvers() -> None:
-    """OmegaConf resolvers used by the tool configs (idempotent)."""
-    if not OmegaConf.has_resolver("eval_run_name"):
-        OmegaConf.register_new_resolver("eval_run_name", _eval_run_name)
-
-
 # ------------------------------------------------------------------------------------------------
 # Composition and validation
 # ------------------------------------------------------------------------------------------------
-
-
-def _describe_expected(msg: str) -> str:
-    """Turn OmegaConf's wording into "expected ..." (for the one-line error)."""
-    low = msg.lower()
-    for word, text in (
-        ("integer", "an integer"),
-        ("float", "a number"),
-        ("bool", "true or false"),
-        ("enum", "one of the allowed names"),
-        ("string", "a string"),
-    ):
-        if f"converted to {word}" in low or f"to {word}" in low:
-            return text
-    return ""
-
-
-def config_error_line(err: BaseException) -> str:
-    """One line naming the key, the value and what was expected, from a Hydra / OmegaConf error chain."""
-    from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
-
-    chain: list[BaseException] = []
-    e: BaseException | None = err
-    while e is not None and len(chain) < 8:
-        chain.append(e)
-        e = e.__cause__ or e.__context__
-    for e in chain:
-        if isinstance(e, ConfigError):
-            return str(e)
-        missing = getattr(e, "missing_cfg_file", None)
-        if missing is not None and getattr(e, "options", None) is not None:  # hydra MissingConfigException
-            group, _, name = str(missing).rpartition("/")
-            valid = sorted(o for o in e.options if not o.startswith("base_"))
-            return f"unknown {group or 'config'} {name!r}; valid: {', '.join(valid)}"
-    for e in chain:
-        if isinstance(e, OmegaConfBaseException):
-            key = getattr(e, "full_key", None) or ""
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            if isinstance(e, ConfigKeyError) or "not in" in first:
-                parent = key.rsplit(".", 1)[0] if "." in key else "the config"
-                return f"unknown key {key!r}: not a key of {parent} (check the spelling; the schemas in findview/config.py and findview_baselines/config.py list every key)"
-            if isinstance(e, ValidationError):
-                value = None
-                if "'" in first:
-                    parts = first.split("'")
-                    value = parts[1] if len(parts) > 2 else None
-                expected = _describe_expected(first)
-                if key and value is not None and expected:
-                    return f"{key}={value!r}: expected {expected}"
-                return f"{key}: {first}" if key else first
-            return f"{key}: {first}" if key and key not in first else first
-    text = " ".join(str(err).split())
-    return text or type(err).__name__
 
 
 def _job_overrides(argv: Sequence[str], multirun: bool) -> list[list[str]]:
@@ -198,30 +117,14 @@ def _job_overrides(argv: Sequence[str], multirun: bool) -> list[list[str]]:
     return [job for batch in batches for job in batch] or [overrides]
 
 
-def compose_config(config_name: str, overrides: Sequence[str] = (), return_hydra_config: bool = False) -> DictConfig:
-    """Compose a tool's config like the tool does (for tests, notebooks and the pre-check)."""
-    from hydra import compose, initialize_config_dir
-
-    from findview_baselines.config import register_configs
-
-    register_configs()
-    register_resolvers()
-    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
-
-
 def validate_config(cfg: DictConfig) -> Any:
     """Instantiate the schemas of ``cfg`` (without its ``hydra`` node), which runs every range check.
 
     Returns the object tree. Raises :class:`ConfigError` (one-line message naming the key).
     """
-    plain = OmegaConf.masked_copy(cfg, [k for k in cfg.keys() if k != "hydra"]) if "hydra" in cfg else cfg
-    try:
-        return OmegaConf.to_object(plain)
-    except ConfigError:
-        raise
-    except Exception as err:  # an interpolation or conversion problem: name the key
-        raise ConfigError(config_error_line(err)) from None
+    from findview_baselines.config import typed_config
+
+    return typed_config(cfg)
 
 
 def _fail(tool: str, message: str, status: int = 2) -> NoReturn:

@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from dataclasses import fields as dataclass_fields
+from pathlib import Path
+from typing import Any, Optional, Sequence
 
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from findview_baselines.rl.dagger_config import DAggerConfig
 from findview_baselines.rl.ppo import PPOConfig
@@ -50,6 +52,12 @@ __all__ = [
     "RenderEpisodeConfig",
     "RenderCorruptionsConfig",
     "register_configs",
+    "typed_config",
+    "compose_config",
+    "register_resolvers",
+    "CONFIG_DIR",
+    "config_error_line",
+    "MOVED_KEYS",
 ]
 
 DIFFICULTY_NAMES = ("easy", "medium", "hard")
@@ -194,29 +202,28 @@ from findview_baselines.rl.policy import VARIANTS as POLICY_VARIANTS  # noqa: E4
 
 
 @dataclass
-class PPOAgentConfig(PPOConfig):
-    """The learned agent: its network (below) and the PPO hyper-parameters (inherited from
-    :class:`findview_baselines.rl.ppo.PPOConfig`; paper section 4 and appendix, docs/TASK.md, section PPO
-    baseline)."""
+class PPOAgentConfig:
+    """The learned agent: its network and how it acts at validation / evaluation. How it is trained lives in
+    the ``trainer`` section (``trainer.ppo.*`` for PPO, ``trainer.dagger.*`` for DAgger)."""
 
     name: str = "ppo"
     """Agent name."""
     variant: str = "early_fusion"
-    """Network: early_fusion (the paper's) | goal_encoder | siamese | correlation | direct."""
+    """Network: one of ``findview_baselines.rl.policy.VARIANTS`` (early_fusion, the paper's, is the default)."""
     hidden_size: int = 512
     """Encoder feature size and GRU state size."""
     fine_shifts: int = 0
-    """correlation / direct only: fine photometric cost map of view vs target for pixel shifts -k..k per axis at
-    the full input resolution (k = fine_shifts pixels; 0 = off). Part of the checkpoint signature."""
+    """correlation / direct / robust only: fine photometric cost map of view vs target for pixel shifts -k..k per
+    axis at the full input resolution (k = fine_shifts pixels; 0 = off). Part of the checkpoint signature."""
     fine_scales: int = 1
     """Pyramid levels of that cost map (2x average pooling per level; level s covers k * 2^s pixels);
     1 = full resolution only. Part of the checkpoint signature."""
     sample: bool = False
     """Draw actions from the policy at validation / evaluation time instead of taking the argmax."""
     revisit_penalty: float = 0.0
-    """Search memory at validation / evaluation time: logit units subtracted from a move per earlier visit
-    of the pose it leads to (poses dead-reckoned from the agent's own moves; breaks left/right loops). 0 = off,
-    the plain policy. See findview_baselines/agents/revisit.py."""
+    """Search memory at validation / evaluation time (and in DAgger's rollouts): logit units subtracted from a
+    move per earlier visit of the pose it leads to (poses dead-reckoned from the agent's own moves; breaks
+    left/right loops). 0 = off, the plain policy. See findview_baselines/rl/search_memory.py."""
     revisit_row_stride: int = 0
     """With the search memory on: once the agent has looked around a full turn near its row, it moves to the next
     search row, this many 1-step moves above / below its start (alternately: +s, -s, +2s, -2s, ...). 0 = off."""
@@ -240,17 +247,12 @@ class PPOAgentConfig(PPOConfig):
             "0 (off), or a positive number of pixels with variant=" + " | ".join(FINE_VARIANTS),
         )
         check(self.fine_scales >= 1, "agent.fine_scales", self.fine_scales, "a positive number of pyramid levels")
-        check(self.lr > 0, "agent.lr", self.lr, "a positive learning rate")
-        check(self.adam_eps > 0, "agent.adam_eps", self.adam_eps, "a positive number")
-        check(self.rollout_steps >= 1, "agent.rollout_steps", self.rollout_steps, "a positive number of steps")
-        check(self.ppo_epochs >= 1, "agent.ppo_epochs", self.ppo_epochs, "a positive number of epochs")
-        check(self.num_mini_batches >= 1, "agent.num_mini_batches", self.num_mini_batches, "a positive integer")
-        check(0 < self.gamma <= 1, "agent.gamma", self.gamma, "a discount in (0, 1]")
-        check(self.aux_coef >= 0, "agent.aux_coef", self.aux_coef, "0 (off) or a positive weight")
-        check(self.kl_to_init_coef >= 0, "agent.kl_to_init_coef", self.kl_to_init_coef, "0 (off) or a positive weight")
-        check(self.critic_warmup_updates >= 0, "agent.critic_warmup_updates", self.critic_warmup_updates, "0 (off) or a number of updates")
         check(self.revisit_row_stride >= 0, "agent.revisit_row_stride", self.revisit_row_stride, "0 (off) or a number of steps")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
+
+
+#: keys that moved: the old spelling -> the new key (a one-line message names the new one)
+MOVED_KEYS: dict[str, str] = {f"agent.{f.name}": f"trainer.ppo.{f.name}" for f in dataclass_fields(PPOConfig)}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -266,7 +268,8 @@ class TrainerConfig:
     """The training run (``trainer`` group): algorithm, size, validation, checkpoints, logging."""
 
     algorithm: str = "ppo"
-    """ppo (the agent config's PPO hyper-parameters) | dagger (trainer.dagger)."""
+    """ppo (hyper-parameters: trainer.ppo) | dagger (trainer.dagger). The section of the algorithm that does not
+    run must keep its defaults (a value set there would silently do nothing, so it is refused)."""
     num_updates: int = 30000
     """Total updates ("full" = 30000, "half" = 15000); drives lr / clip decay and the scheduler."""
     num_envs: int = 16
@@ -295,8 +298,10 @@ class TrainerConfig:
     """tqdm progress bar."""
     torch_threads: Optional[int] = None
     """CPU threads for torch (null: findview's policy, see findview.runtime)."""
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    """PPO hyper-parameters (used when algorithm=ppo)."""
     dagger: DAggerConfig = field(default_factory=DAggerConfig)
-    """DAgger settings (used when algorithm=dagger)."""
+    """DAgger hyper-parameters (used when algorithm=dagger)."""
     distributed: bool = False
     """Train with several processes started by torchrun (DD-PPO: gradients averaged over ranks; num_envs is
     per rank, rank r of K takes train images r::K; rank 0 writes every file). See docs/CLUSTER.md."""
@@ -310,6 +315,7 @@ class TrainerConfig:
 
     def __post_init__(self) -> None:
         check(self.algorithm in ALGORITHMS, "trainer.algorithm", self.algorithm, " | ".join(ALGORITHMS))
+        self._check_idle_section()
         check(self.num_updates >= 1, "trainer.num_updates", self.num_updates, "a positive number of updates")
         check(self.num_envs >= 1, "trainer.num_envs", self.num_envs, "a positive number of environments")
         for key in ("val_interval", "log_interval", "checkpoint_interval"):
@@ -323,6 +329,22 @@ class TrainerConfig:
         for key in ("val_episodes", "val_num_envs", "val_max_steps", "stop_after", "torch_threads"):
             value = getattr(self, key)
             check(value is None or value >= 1, f"trainer.{key}", value, "null or a positive integer")
+
+
+    def _check_idle_section(self) -> None:
+        """Refuse a value set in the section of the algorithm that does not run (``trainer.ppo.*`` with
+        ``algorithm=dagger`` and the other way round), naming the first such key."""
+        idle = "dagger" if self.algorithm == "ppo" else "ppo"
+        section, default = getattr(self, idle), type(getattr(self, idle))()
+        for f in dataclass_fields(default):
+            value = getattr(section, f.name)
+            if value != getattr(default, f.name):
+                other = f"trainer.{self.algorithm}.{f.name}" if hasattr(getattr(self, self.algorithm), f.name) else \
+                    f"trainer.{self.algorithm}.*"
+                raise ConfigError(
+                    f"trainer.{idle}.{f.name}={value!r} is set but trainer.algorithm={self.algorithm} does not use "
+                    f"trainer.{idle}.*: drop it, set {other}, or train with trainer={idle}"
+                )
 
 
 @dataclass
@@ -471,6 +493,113 @@ class RenderCorruptionsConfig:
 
     def __post_init__(self) -> None:
         check(1 <= self.severity <= 5, "severity", self.severity, "an integer 1-5")
+
+
+def _describe_expected(msg: str) -> str:
+    """Turn OmegaConf's wording into "expected ..." (for the one-line error)."""
+    low = msg.lower()
+    for word, text in (
+        ("integer", "an integer"),
+        ("float", "a number"),
+        ("bool", "true or false"),
+        ("enum", "one of the allowed names"),
+        ("string", "a string"),
+    ):
+        if f"converted to {word}" in low or f"to {word}" in low:
+            return text
+    return ""
+
+
+def config_error_line(err: BaseException) -> str:
+    """One line naming the key, the value and what was expected, from a Hydra / OmegaConf error chain."""
+    from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
+
+    chain: list[BaseException] = []
+    e: BaseException | None = err
+    while e is not None and len(chain) < 8:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    for e in chain:
+        if isinstance(e, ConfigError):
+            return str(e)
+        missing = getattr(e, "missing_cfg_file", None)
+        if missing is not None and getattr(e, "options", None) is not None:  # hydra MissingConfigException
+            group, _, name = str(missing).rpartition("/")
+            valid = sorted(o for o in e.options if not o.startswith("base_"))
+            return f"unknown {group or 'config'} {name!r}; valid: {', '.join(valid)}"
+    for e in chain:
+        if isinstance(e, OmegaConfBaseException):
+            key = getattr(e, "full_key", None) or ""
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            if isinstance(e, ConfigKeyError) or "not in" in first:
+                if key in MOVED_KEYS:
+                    return f"{key} is now {MOVED_KEYS[key]} (the trainer section holds how the agent is trained)"
+                parent = key.rsplit(".", 1)[0] if "." in key else "the config"
+                return f"unknown key {key!r}: not a key of {parent} (check the spelling; the schemas in findview/config.py and findview_baselines/config.py list every key)"
+            if isinstance(e, ValidationError):
+                value = None
+                if "'" in first:
+                    parts = first.split("'")
+                    value = parts[1] if len(parts) > 2 else None
+                expected = _describe_expected(first)
+                if key and value is not None and expected:
+                    return f"{key}={value!r}: expected {expected}"
+                return f"{key}: {first}" if key else first
+            return f"{key}: {first}" if key and key not in first else first
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
+
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+def run_name_from_checkpoint(path: str) -> str:
+    """A folder name for a checkpoint: ``<run folder>-<file stem>`` for ``<run>/checkpoints/<f>.pth``,
+    else the file stem (``pretrained/cpu_agent.pth`` -> ``cpu_agent``)."""
+    p = Path(str(path))
+    if p.parent.name == "checkpoints" and p.parent.parent.name:
+        return f"{p.parent.parent.name}-{p.stem}"
+    return p.stem
+
+
+def _eval_run_name(agent_choice: Any, checkpoint: Any) -> str:
+    return run_name_from_checkpoint(str(checkpoint)) if checkpoint not in (None, "", "None") else str(agent_choice)
+
+
+def register_resolvers() -> None:
+    """OmegaConf resolvers used by the tool configs (idempotent)."""
+    if not OmegaConf.has_resolver("eval_run_name"):
+        OmegaConf.register_new_resolver("eval_run_name", _eval_run_name)
+
+
+def compose_config(config_name: str, overrides: Sequence[str] = (), return_hydra_config: bool = False) -> DictConfig:
+    """Compose a tool's config like the tool does (for tests, notebooks and the pre-check)."""
+    from hydra import compose, initialize_config_dir
+
+    register_configs()
+    register_resolvers()
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
+
+
+def typed_config(cfg: Any) -> Any:
+    """The validated object tree of a composed config (its ``hydra`` node dropped): the schemas' dataclasses,
+    their range checks run. An object tree is returned as it is.
+
+    Raises:
+        ConfigError: a wrong value, naming the key (one line).
+    """
+    from omegaconf import DictConfig, OmegaConf
+
+    if not isinstance(cfg, DictConfig):
+        return cfg
+    plain = OmegaConf.masked_copy(cfg, [k for k in cfg.keys() if k != "hydra"]) if "hydra" in cfg else cfg
+    try:
+        return OmegaConf.to_object(plain)
+    except ConfigError:
+        raise
+    except Exception as err:  # an interpolation or conversion problem: name the key
+        raise ConfigError(config_error_line(err)) from None
 
 
 _REGISTERED = False

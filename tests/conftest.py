@@ -72,7 +72,7 @@ def make_cfg(panorama_folder: Path, dataset_out: Path):
 @pytest.fixture(scope="session")
 def reference_run(panorama_folder: Path, dataset_out: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """6 updates in one go (levels 1, 2, 3 at updates 0, 2, 4; validation at 3 and 6)."""
-    from findview_baselines.rl.run import train
+    from findview_baselines.training import train
 
     run_dir = tmp_path_factory.mktemp("run_full")
     result = train(make_config(panorama_folder, dataset_out), run_dir)

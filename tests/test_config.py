@@ -39,6 +39,7 @@ def error_of(config_name: str, overrides: list[str]) -> str:
         ("train", ["+experiment=cpu_small"]),
         ("train", ["+experiment=imitate"]),
         ("train", ["+experiment=reinforce"]),
+        ("train", ["+experiment=robust"]),
         ("train", ["sim=fov60", "corruption.name=weather", "corruption.severity=[1,3]"]),
         ("eval", []),
         *[("eval", [f"agent={a}"]) for a in ("random", "oracle", "orb", "sift", "rotation", "ppo")],
@@ -55,11 +56,21 @@ def test_every_shipped_config_composes_and_validates(config_name: str, overrides
     "config_name, overrides, expected",
     [
         ("train", ["trainer.num_envs=abc"], "trainer.num_envs='abc': expected an integer"),
-        ("train", ["agent.lr=fast"], "agent.lr='fast': expected a number"),
+        ("train", ["trainer.ppo.lr=fast"], "trainer.ppo.lr='fast': expected a number"),
+        ("train", ["trainer.ppo.lr=-1"], "trainer.ppo.lr=-1.0: expected a positive number"),
+        # PPO's hyper-parameters moved from agent.* to trainer.ppo.*: the old spelling names the new key
+        ("train", ["agent.lr=1e-3"], "agent.lr is now trainer.ppo.lr"),
+        ("train", ["agent.rollout_steps=64"], "agent.rollout_steps is now trainer.ppo.rollout_steps"),
+        # a key of the trainer that does not run would silently do nothing: refused, naming the way out
+        ("train", ["trainer=dagger", "trainer.ppo.lr=1e-3"],
+         "trainer.ppo.lr=0.001 is set but trainer.algorithm=dagger does not use trainer.ppo.*: drop it, set "
+         "trainer.dagger.lr, or train with trainer=ppo"),
+        ("train", ["trainer.dagger.epochs=2"], "trainer.dagger.epochs=2.0 is set but trainer.algorithm=ppo"),
+        ("train", ["trainer=dagger", "trainer.dagger.lr=0"], "trainer.dagger.lr must be positive, got 0.0"),
         ("train", ["sim.fov=wide"], "sim.fov='wide': expected a number"),
         ("train", ["sim.fov=200"], "sim.fov=200.0: expected a field of view in (0, 180) degrees"),
         ("train", ["trainer.num_update=10"], "unknown key 'trainer.num_update'"),
-        ("train", ["agent.eps=1e-5"], "unknown key 'agent.eps'"),  # Adam's epsilon is agent.adam_eps
+        ("train", ["trainer.ppo.eps=1e-5"], "unknown key 'trainer.ppo.eps'"),  # Adam's epsilon is trainer.ppo.adam_eps
         ("train", ["agent.deterministic_eval=false"], "unknown key 'agent.deterministic_eval'"),  # one switch: sample
         ("train", ["trainer.algorithm=sarsa"], "trainer.algorithm='sarsa': expected ppo | dagger"),
         ("train", ["task.reward.name=dense"], "task.reward.name='dense': expected paper | bell | basic"),

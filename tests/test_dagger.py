@@ -241,7 +241,7 @@ def test_config_validation_and_beta_schedule() -> None:
         DAggerConfig(search_prior="spiral")
     with pytest.raises(ValueError, match="dagger.labels"):
         DAggerConfig(labels="soft")
-    cfg = DAggerConfig.from_mapping({"beta_start": 1.0, "beta_end": 0.2, "beta_decay_updates": 4, "name": "x"})
+    cfg = DAggerConfig(beta_start=1.0, beta_end=0.2, beta_decay_updates=4)
     assert [beta_at(cfg, u) for u in (0, 1, 2, 4, 9)] == pytest.approx([1.0, 0.8, 0.6, 0.2, 0.2])
     assert beta_at(DAggerConfig(beta_decay_updates=0, beta_end=0.3), 0) == 0.3
 

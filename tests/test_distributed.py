@@ -80,12 +80,13 @@ def fixed_rollout(seed: int = 0) -> dict[str, torch.Tensor]:
 def ppo_step(envs: slice) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
     """Weights and stats after one PPO update (2 epochs, 1 mini-batch) on ``fixed_rollout()[:, envs]``."""
     from findview_baselines.rl.policy import build_policy
+    from findview_baselines.config import PPOAgentConfig
     from findview_baselines.rl.ppo import PPO, PPOConfig
     from findview_baselines.rl.storage import RolloutStorage
 
     data = fixed_rollout()
     torch.manual_seed(0)
-    policy = build_policy({"variant": "early_fusion", "hidden_size": HIDDEN}, SIZE, SIZE)
+    policy = build_policy(PPOAgentConfig(hidden_size=HIDDEN), SIZE, SIZE)
     cfg = PPOConfig(rollout_steps=T_STEPS, ppo_epochs=2, num_mini_batches=1, lr=1e-3)
     ppo = PPO(policy, cfg)
     n = len(range(N_ALL)[envs])
@@ -99,10 +100,11 @@ def ppo_step(envs: slice) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
 
 
 def fixed_initial_weights() -> dict[str, torch.Tensor]:
+    from findview_baselines.config import PPOAgentConfig
     from findview_baselines.rl.policy import build_policy
 
     torch.manual_seed(0)
-    return build_policy({"variant": "early_fusion", "hidden_size": HIDDEN}, SIZE, SIZE).state_dict()
+    return build_policy(PPOAgentConfig(hidden_size=HIDDEN), SIZE, SIZE).state_dict()
 
 
 def test_advantage_statistics_and_helpers_are_plain_without_torchrun() -> None:
@@ -137,7 +139,7 @@ def test_sigusr1_stops_a_single_process_run_like_sigterm(
     Interrupted(SIGUSR1) (exit 138 in the tools), without torchrun too."""
     from findview.task.env import FindViewEnv
     from findview_baselines.cli import Interrupted
-    from findview_baselines.rl.run import train
+    from findview_baselines.training import train
 
     original, calls = FindViewEnv.step, {"n": 0}
 
@@ -170,9 +172,9 @@ def _cfg(panorama_folder: Path, dataset_out: Path, **overrides: Any):
 
 
 def _two_rank_worker(rank: int, world: int, port: int, out: Path, panorama_folder: Path, dataset_out: Path) -> None:
-    import findview_baselines.rl.run as run
+    import findview_baselines.training.run as run
     from findview_baselines.rl import distributed
-    from findview_baselines.rl.run import train
+    from findview_baselines.training import train
 
     learn = run.learn
 
@@ -290,7 +292,7 @@ def _tool_args(panorama_folder: Path, dataset_out: Path, run_dir: Path, *extra: 
         str(REPO / "tools" / "train.py"), "dataset=folder", f"dataset.root={panorama_folder}",
         f"dataset.out_dir={dataset_out}", "dataset.name=testfolder", f"sim.height={SIZE}", f"sim.width={SIZE}",
         "sim.device=cpu", "sim.prefetch_workers=0", "task.max_steps=300", "agent.hidden_size=32",
-        "agent.rollout_steps=8", "agent.ppo_epochs=2", "trainer.num_envs=2", "trainer.val_interval=0",
+        "trainer.ppo.rollout_steps=8", "trainer.ppo.ppo_epochs=2", "trainer.num_envs=2", "trainer.val_interval=0",
         "trainer.val_at_end=false", "trainer.log_interval=1", "trainer.checkpoint_interval=1",
         "trainer.progress=false", "trainer.torch_threads=1", "trainer.num_updates=100000",
         f"hydra.run.dir={run_dir}", *extra,
@@ -328,10 +330,10 @@ def test_sigterm_to_one_rank_stops_both_and_one_process_resumes(
     assert "exitcode  : 143" in out and "exitcode  : -" not in out, out[-3000:]
 
     # the same folder, one process, no torchrun: continues from the saved update (re-sharded, re-seeded)
-    from findview_baselines.rl.run import train
+    from findview_baselines.training import train
 
     overrides = dict(a.split("=", 1) for a in _tool_args(panorama_folder, dataset_out, run_dir)[1:] if "hydra" not in a)
-    with caplog.at_level(logging.INFO, logger="findview_baselines.rl.run"):
+    with caplog.at_level(logging.INFO, logger="findview_baselines.training.run"):
         result = train(make_config(panorama_folder, dataset_out, **{**overrides, "trainer.stop_after": 1}), run_dir)
     assert result.updates == update + 1 and not result.completed
     assert f"resumed {run_dir} at update {update}" in caplog.text and "saved by 2 rank(s), now 1" in caplog.text

@@ -20,6 +20,7 @@ from findview.sim import PanoramaBank, Simulator, equi2pers
 from findview.task import FindViewEnv, StaticEpisodeSource
 from findview.task.sources import SampledEpisodeSource
 from findview_baselines.rl.policy import Policy, build_policy
+from findview_baselines.config import PPOAgentConfig
 from findview_baselines.rl.storage import RolloutStorage
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
@@ -253,7 +254,7 @@ def test_speed_options_match_fp32(name, device):
 
 def test_checkpoints_with_speed_options_load_without_them(tmp_path):
     torch.manual_seed(0)
-    cfg = {"hidden_size": 32, "precision": "bf16", "channels_last": True, "compile": False}
+    cfg = PPOAgentConfig(hidden_size=32, precision="bf16", channels_last=True, compile=False)
     fast = build_policy(cfg, SIZE, SIZE)
     fast.configure_speed("bf16", channels_last=True, compile=True, compile_backend="eager")
     assert fast.encoder.convs[0].weight.is_contiguous(memory_format=torch.channels_last)

@@ -44,7 +44,8 @@ from findview_baselines.rl.policy import build_policy
 from findview_baselines.agents.ppo_agent import PPOAgent
 from findview_baselines.cli import compose_config
 from findview_baselines.evaluation.harness import run_episodes
-from findview_baselines.rl.run import load_policy, train
+from findview_baselines.rl.checkpoint import load_policy
+from findview_baselines.training import train
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 48
@@ -56,8 +57,8 @@ LEARNING_SETUP = {
     "sim.height": SIZE, "sim.width": SIZE, "sim.device": "cpu", "sim.prefetch_workers": 0,
     "task.max_steps": MAX_STEPS, "task.pitch_bound": PITCH_BOUND,
     "task.reward.name": "bell", "task.reward.alpha": 20.0, "task.reward.beta": 2.0, "task.reward.dist_coef": 1.0,
-    "agent.hidden_size": 64, "agent.rollout_steps": 16, "agent.lr": 1e-3, "agent.entropy_coef": 0.01,
-    "agent.gamma": 0.9, "agent.gae_lambda": 0.8, "agent.ppo_epochs": 2, "agent.num_mini_batches": 2,
+    "agent.hidden_size": 64, "trainer.ppo.rollout_steps": 16, "trainer.ppo.lr": 1e-3, "trainer.ppo.entropy_coef": 0.01,
+    "trainer.ppo.gamma": 0.9, "trainer.ppo.gae_lambda": 0.8, "trainer.ppo.ppo_epochs": 2, "trainer.ppo.num_mini_batches": 2,
     "trainer.num_envs": 16, "trainer.num_updates": 300, "trainer.seed": 0, "trainer.torch_threads": 1,
     "trainer.val_interval": 0, "trainer.val_at_end": False, "trainer.log_interval": 50,
     "trainer.checkpoint_interval": 0, "trainer.progress": False,

@@ -215,9 +215,9 @@ def test_signature_roundtrip_and_mismatch_messages() -> None:
 
 
 def test_build_policy_from_agent_config(repo_root) -> None:
-    from omegaconf import OmegaConf
+    from findview_baselines.cli import compose_config, validate_config
 
-    cfg = OmegaConf.load(repo_root / "configs" / "agent" / "ppo.yaml")
+    cfg = validate_config(compose_config("train", ["agent=ppo"])).agent
     assert cfg.name == "ppo" and cfg.variant == "early_fusion" and cfg.hidden_size == 512
     cfg.hidden_size = 16
     cfg.variant = "goal_encoder"

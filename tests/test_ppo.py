@@ -316,12 +316,14 @@ def test_ppo_config_from_yaml(repo_root) -> None:
 
     from findview_baselines.cli import compose_config
 
-    agent = compose_config("train", ["agent=ppo"]).agent
-    cfg = PPOConfig.from_mapping(agent)
-    assert cfg == PPOConfig()  # the yaml holds the paper's values, the dataclass defaults too
+    from findview_baselines.cli import validate_config
+
+    typed = validate_config(compose_config("train", ["agent=ppo"]))
+    cfg = typed.trainer.ppo
+    assert isinstance(cfg, PPOConfig) and typed.trainer.algorithm == "ppo"
     values = (cfg.lr, cfg.adam_eps, cfg.clip, cfg.ppo_epochs, cfg.num_mini_batches, cfg.rollout_steps)
-    assert values == (2.5e-4, 1e-5, 0.2, 4, 1, 128)
-    assert agent.sample is False and agent.name == "ppo"
+    assert values == (2.5e-4, 1e-5, 0.2, 4, 1, 128)  # the paper's (the "0.0025" of its text is not what ran)
+    assert typed.agent.sample is False and typed.agent.name == "ppo"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -438,10 +440,8 @@ def p_right(policy: Policy) -> float:
 
 
 def test_trainer_runs_rollouts_and_learns_the_bandit(tmp_path) -> None:
-    from findview_baselines.cli import UserError
-    from findview_baselines.rl.checkpoint import save_checkpoint
+    from findview_baselines.rl.checkpoint import CheckpointError, load_policy, save_checkpoint
     from findview_baselines.rl.ppo_trainer import PPOTrainer
-    from findview_baselines.rl.run import load_policy
 
     torch.manual_seed(0)
     env = BanditEnv(num_envs=4, length=3)
@@ -474,7 +474,7 @@ def test_trainer_runs_rollouts_and_learns_the_bandit(tmp_path) -> None:
     resumed = PPOTrainer(env, other, cfg, total_updates=9, scheduler=DifficultyScheduler(9))
     resumed.load_state_dict(torch.load(path, weights_only=False))
     assert resumed.update == 9 and resumed.scheduler.current_level == 3
-    with pytest.raises(UserError, match=r"last.pth: .*hidden_size is 16 in the checkpoint but 8"):
+    with pytest.raises(CheckpointError, match=r"last.pth: .*hidden_size is 16 in the checkpoint but 8"):
         load_policy(path, Policy(SIZE, SIZE, hidden_size=8))
 
 

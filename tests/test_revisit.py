@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
-from findview_baselines.agents.revisit import RevisitPenalty
+from findview_baselines.rl.search_memory import RevisitPenalty
 
 
 def pose_view(pitch: int, yaw: int) -> torch.Tensor:

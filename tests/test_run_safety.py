@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from findview_baselines.cli import Interrupted, UserError
-from findview_baselines.rl.run import train
+from findview_baselines.training import train
 from findview_baselines.rl.safety import RunLock, lock_holder
 from _training import SIZE, load
 
@@ -42,7 +42,7 @@ def _tool_args(panorama_folder: Path, dataset_out: Path, run_dir: Path, *extra: 
         sys.executable, str(REPO / "tools" / "train.py"), "dataset=folder",
         f"dataset.root={panorama_folder}", f"dataset.out_dir={dataset_out}", "dataset.name=testfolder",
         f"sim.height={SIZE}", f"sim.width={SIZE}", "sim.device=cpu", "sim.prefetch_workers=0", "task.max_steps=300",
-        "agent.hidden_size=32", "agent.rollout_steps=8", "agent.ppo_epochs=2", "trainer.num_envs=2",
+        "agent.hidden_size=32", "trainer.ppo.rollout_steps=8", "trainer.ppo.ppo_epochs=2", "trainer.num_envs=2",
         "trainer.val_interval=0", "trainer.val_at_end=false", "trainer.log_interval=1",
         "trainer.checkpoint_interval=1", "trainer.progress=false", "trainer.torch_threads=1",
         f"hydra.run.dir={run_dir}", *extra,
@@ -216,7 +216,7 @@ def test_sigint_skips_a_scheduled_validation_and_writes_latest(make_cfg, tmp_pat
     """SIGINT while update 3 (a validation update: val_interval 3) trains: the update is finished, the
     validation is skipped (no best.pth, no val scalars), latest.pth holds update 3 and the run stops."""
     from findview_baselines.rl import ppo_trainer
-    from findview_baselines.rl.run import ValidationCallback
+    from findview_baselines.training.callbacks import ValidationCallback
 
     original = ppo_trainer.PPOTrainer.train_update
 

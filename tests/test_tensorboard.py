@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from findview_baselines.rl import dagger, ppo_trainer
-from findview_baselines.rl.run import tb_tag, train
+from findview_baselines.training import tb_tag, train
 
 
 def _scalars(run_dir: Path) -> dict[str, list[int]]:
@@ -62,8 +62,8 @@ def test_every_reported_metric_reaches_tensorboard(make_cfg, tmp_path: Path, mon
 
     seen = _record_stats(monkeypatch, ppo_trainer.PPOTrainer)
     finetune = tmp_path / "finetune"
-    train(make_cfg(**quiet, **{"init_from": str(imitate / "checkpoints" / "latest.pth"), "agent.kl_to_init_coef": 0.1,
-                               "agent.critic_warmup_updates": 1, "agent.aux_coef": 0.1}), finetune)
+    train(make_cfg(**quiet, **{"init_from": str(imitate / "checkpoints" / "latest.pth"), "trainer.ppo.kl_to_init_coef": 0.1,
+                               "trainer.ppo.critic_warmup_updates": 1, "trainer.ppo.aux_coef": 0.1}), finetune)
     scalars = _check_every_key_logged(seen, finetune)
     for key in ("kl_to_init", "critic_warmup", "aux_loss", "approx_kl", "entropy"):
         assert key in seen[0], f"PPO no longer reports {key}"

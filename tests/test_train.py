@@ -1,4 +1,4 @@
-"""The training run (findview_baselines.rl.run.train, tools/train.py): exact resume, checkpoint
+"""The training run (findview_baselines.training.train, tools/train.py): exact resume, checkpoint
 files, fine-tuning signature checks, NaN handling and early failure on an unwritable run folder.
 
 Everything runs on CPU with a tiny setup: 48x48 views, 2 envs, 8-step rollouts, GRU 32, 300-step
@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from _training import SIZE, digest, load, make_config
-from findview_baselines.cli import UserError
-from findview_baselines.rl.run import TrainingDiverged, select_val_episodes, train
+from findview_baselines.rl.checkpoint import CheckpointError
+from findview_baselines.training import TrainingDiverged, select_val_episodes, train
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -71,9 +71,9 @@ def test_checkpoints_load_with_weights_only(reference_run: Path) -> None:
 
 def test_init_from_loads_weights_and_checks_the_model(make_cfg, reference_run: Path, tmp_path: Path) -> None:
     ckpt = reference_run / "checkpoints" / "best.pth"
-    with pytest.raises(UserError, match=r"best.pth: checkpoint does not fit this model: height is 48 in the checkpoint but 40"):
+    with pytest.raises(CheckpointError, match=r"init_from=.*best.pth: checkpoint does not fit this model: height is 48 in the checkpoint but 40"):
         train(make_cfg(**{"init_from": str(ckpt), "sim.height": 40}), tmp_path / "other_size")
-    with pytest.raises(UserError, match=r"hidden_size is 32 in the checkpoint but 16"):
+    with pytest.raises(CheckpointError, match=r"hidden_size is 32 in the checkpoint but 16"):
         train(make_cfg(**{"init_from": str(ckpt), "agent.hidden_size": 16}), tmp_path / "other_hidden")
 
     # same model: fine-tuning starts at update 0 with a fresh optimizer from the checkpoint's weights
@@ -90,7 +90,7 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(make_cfg, tmp_path: P
     latest = tmp_path / "checkpoints" / "latest.pth"
     before = (digest(latest), latest.stat().st_mtime_ns)
     with pytest.raises(TrainingDiverged, match=r"diverged at update 3: .*non-finite.*update 2\) was kept"):
-        train(make_cfg(**{"agent.entropy_coef": math.nan}), tmp_path)
+        train(make_cfg(**{"trainer.ppo.entropy_coef": math.nan}), tmp_path)
     assert (digest(latest), latest.stat().st_mtime_ns) == before
     assert load(latest)["update"] == 2
 
@@ -137,7 +137,7 @@ def test_cli_resumes_the_same_run_folder(panorama_folder: Path, dataset_out: Pat
         sys.executable, str(REPO / "tools" / "train.py"), "agent=ppo", "dataset=folder",
         f"dataset.root={panorama_folder}", f"dataset.out_dir={dataset_out}", "dataset.name=testfolder",
         f"sim.height={SIZE}", f"sim.width={SIZE}", "sim.device=cpu", "task.max_steps=300",
-        "agent.hidden_size=32", "agent.rollout_steps=8", "trainer.num_envs=2", "trainer.num_updates=2",
+        "agent.hidden_size=32", "trainer.ppo.rollout_steps=8", "trainer.num_envs=2", "trainer.num_updates=2",
         "trainer.val_interval=0", "trainer.val_episodes=3", "trainer.progress=false", "trainer.torch_threads=1",
         f"hydra.run.dir={run_dir}",
     ]

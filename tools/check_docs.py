@@ -128,8 +128,12 @@ def substitute(cmd: str, ctx: Context) -> str:
 # findview_baselines/config.py, and each benchmark's argparse.
 TRAIN = ("trainer.num_updates=2 trainer.val_interval=1 trainer.val_episodes=2 trainer.val_num_envs=2 "
          "trainer.val_max_steps=30 trainer.num_envs=2 trainer.log_interval=1 trainer.checkpoint_interval=1 "
-         "trainer.progress=false trainer.dagger.rollout_steps=8 trainer.dagger.seq_len=8 trainer.dagger.epochs=1 "
-         "agent.rollout_steps=8 agent.ppo_epochs=1 task.max_steps=300 sim.height=64 sim.width=64")
+         "trainer.progress=false task.max_steps=300 sim.height=64 sim.width=64")
+# per algorithm (a key of the algorithm that does not run is refused)
+TRAIN_ALGORITHM = {
+    "dagger": "trainer.dagger.rollout_steps=8 trainer.dagger.seq_len=8 trainer.dagger.epochs=1",
+    "ppo": "trainer.ppo.rollout_steps=8 trainer.ppo.ppo_epochs=1",
+}
 EVAL = "max_episodes=2 task.max_steps=30 progress=false"
 # every tools/ command: smaller synthetic panoramas (generated in seconds, not 20 s; a synthetic-only key)
 TOOLS = "dataset.width=256"
@@ -363,6 +367,18 @@ def check_tensorboard(cmd: str, cwd: Path) -> Optional[str]:
     return None
 
 
+def _train_algorithm(cmd: str, script: str) -> str:
+    """``trainer.algorithm`` of a documented ``tools/train.py`` command (``ppo`` when it does not compose:
+    its run then shows the problem)."""
+    from findview_baselines.cli import compose_config
+
+    args = [a for a in shlex.split(cmd.split(script, 1)[1]) if not a.startswith("-") and "=" in a]
+    try:
+        return str(compose_config("train", args).trainer.algorithm)
+    except Exception:
+        return "ppo"
+
+
 def prepare(cmd: str, overrides: bool = True) -> str:
     """Scripts by absolute path, the small overrides appended (not to an error example: they could hide it)."""
     script = _script(cmd)
@@ -373,6 +389,8 @@ def prepare(cmd: str, overrides: bool = True) -> str:
     extra = OVERRIDES.get(script, "") if overrides else ""
     if overrides and script in HYDRA_TOOLS:
         extra = f"{extra} {TOOLS}"
+    if overrides and script == "tools/train.py":
+        extra = f"{extra} {TRAIN_ALGORITHM[_train_algorithm(cmd, script)]}"
     if overrides and script == "tools/eval.py" and "checkpoint=" not in cmd:
         extra = f"{extra} {EVAL_VIEWS}"  # with a checkpoint the view size is the checkpoint's
     cmd = re.sub(r"(^|\s)" + re.escape(script), lambda m: m.group(1) + str(REPO / script), cmd, count=1)

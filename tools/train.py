@@ -34,7 +34,7 @@ log = logging.getLogger("train")
 
 
 def main(cfg: DictConfig, ctx: ToolContext) -> None:
-    from findview_baselines.rl.run import TrainingDiverged, train
+    from findview_baselines.training import TrainingDiverged, train
 
     try:
         result = train(cfg, ctx.run_dir)

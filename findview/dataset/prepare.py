@@ -40,6 +40,8 @@ the episodes of the file made with ``K`` (:mod:`findview.dataset.episodes`). Add
 """
 from __future__ import annotations
 
+import dataclasses
+
 import hashlib
 import json
 import os
@@ -89,7 +91,9 @@ def _to_plain(cfg: Any) -> dict[str, Any]:
         return out
     if isinstance(cfg, Mapping):
         return dict(cfg)
-    raise DatasetError(f"dataset config must be a mapping, got {type(cfg).__name__}")
+    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):  # the validated DatasetConfig
+        return dataclasses.asdict(cfg)
+    raise DatasetError(f"dataset config must be a DatasetConfig or a mapping, got {type(cfg).__name__}")
 
 
 def _int_key(raw: Mapping[str, Any], key: str, default: int) -> int:

@@ -30,7 +30,7 @@ import torch
 
 from findview.episode import Episode
 from findview_baselines.agents.base import STOP, Agent, episode_rng, to_plain_dict
-from findview_baselines.agents.revisit import SEARCH_KEYS, make_revisit_penalty, search_settings
+from findview_baselines.rl.search_memory import SEARCH_KEYS, make_revisit_penalty, search_settings
 
 __all__ = ["PPOAgent", "load_ppo_checkpoint"]
 

@@ -75,11 +75,17 @@ from findview_baselines.agents.feature_base import (
     detect,
 )
 from findview_baselines.agents.photometric import (
+    LCN_SIGMA,
     VERIFY_SCALE,
     VERIFY_SIGMA,
+    detection_image,
+    hue_residual,
     mean_chromaticity,
+    opponent_mean,
     photometric_score,
     photometric_template,
+    structure_score,
+    structure_template,
 )
 from findview_baselines.agents.rotation_geometry import (
     RotationEstimate,
@@ -102,6 +108,11 @@ __all__ = [
     "photometric_template",
     "photometric_score",
     "mean_chromaticity",
+    "structure_template",
+    "structure_score",
+    "opponent_mean",
+    "hue_residual",
+    "detection_image",
     "RotationAgent",
     "VERIFY_SCALE",
     "VERIFY_SIGMA",
@@ -119,11 +130,12 @@ SEARCH, GOTO, REFINE = "search", "goto", "refine"
 @dataclass
 class _Target:
     features: Features
-    template: np.ndarray  # photometric_template of the target
+    template: np.ndarray  # structure_template of the target
     chroma: np.ndarray  # mean_chromaticity of the target
+    opponent: np.ndarray  # opponent_mean of the target
     image: np.ndarray  # (3, H, W) uint8 copy: a view equal to it is the target
     coarse: Features | None = None  # keypoints at search_scale (computed on the first coarse estimate)
-    fine: np.ndarray | None = None  # photometric_template at REFINE_SCALE (computed when refining)
+    fine: np.ndarray | None = None  # structure_template at REFINE_SCALE (computed when refining)
 
 
 @dataclass
@@ -208,6 +220,8 @@ class RotationAgent(FeatureAgent):
         "max_arrivals",
         "verify_thresh",
         "verify_chroma",
+        "verify_hue",
+        "lcn_sigma",
         "reject_radius",
         "refine",
         "threads",
@@ -233,8 +247,10 @@ class RotationAgent(FeatureAgent):
         sweep_pitch: int | None = None,
         search_scale: float = 0.5,
         max_arrivals: int = 6,
-        verify_thresh: float = 0.6,
+        verify_thresh: float = 0.3,
         verify_chroma: float = 0.2,
+        verify_hue: float = 25.0,
+        lcn_sigma: float | None = LCN_SIGMA,
         reject_radius: int = 3,
         refine: bool = True,
         threads: int = 2,
@@ -267,6 +283,10 @@ class RotationAgent(FeatureAgent):
         self.max_arrivals = int(max_arrivals)
         self.verify_thresh = float(verify_thresh)
         self.verify_chroma = float(verify_chroma)
+        self.verify_hue = float(verify_hue)
+        if lcn_sigma is not None and not float(lcn_sigma) > 0.0:
+            raise ValueError(f"lcn_sigma must be > 0 pixels or None, got {lcn_sigma!r}")
+        self.lcn_sigma = None if lcn_sigma is None else float(lcn_sigma)
         self.reject_radius = int(reject_radius)
         self.refine = bool(refine)
         super().__init__(num_envs, device, seed, threads=threads, cv2_threads=cv2_threads)
@@ -281,9 +301,10 @@ class RotationAgent(FeatureAgent):
 
     def prepare_target(self, slot: Slot, target: np.ndarray) -> _Target:
         return _Target(
-            features=detect(self.detector, gray_of(target), self.n_features),
-            template=photometric_template(target),
+            features=self._features(gray_of(target), False),
+            template=structure_template(target),
             chroma=mean_chromaticity(target),
+            opponent=opponent_mean(target),
             image=np.array(target, copy=True),
         )
 
@@ -295,14 +316,23 @@ class RotationAgent(FeatureAgent):
         return max(1, int(round(0.8 * vfov)))
 
     # estimates -----------------------------------------------------------------------------------
+    def _detect(self, gray: np.ndarray, scale: float) -> Features:
+        """Keypoints of a ``(H, W)`` gray image, detected on its local-contrast-normalised version
+        (:func:`detection_image`, window ``lcn_sigma`` full-size pixels times ``scale``, the size of
+        ``gray`` relative to the view) unless ``lcn_sigma`` is ``None``."""
+        if self.lcn_sigma is not None:
+            gray = detection_image(gray, max(1.0, self.lcn_sigma * scale))
+        return detect(self.detector, gray, self.n_features)
+
     def _features(self, gray: np.ndarray, coarse: bool) -> Features:
         """Keypoints of a ``(H, W)`` gray image, in full-resolution pixel coordinates; ``coarse``:
         detected on the image downsampled by ``search_scale`` (area average)."""
         if not coarse or self.search_scale >= 1.0:
-            return detect(self.detector, gray, self.n_features)
+            return self._detect(gray, 1.0)
         h, w = gray.shape
         sw, sh = max(16, int(round(w * self.search_scale))), max(16, int(round(h * self.search_scale)))
-        f = detect(self.detector, cv2.resize(gray, (sw, sh), interpolation=cv2.INTER_AREA), self.n_features)
+        small = cv2.resize(gray, (sw, sh), interpolation=cv2.INTER_AREA)
+        f = self._detect(small, self.search_scale)
         if len(f):
             scale = np.array([w / sw, h / sh], np.float32)
             f = Features((f.pts + 0.5) * scale - 0.5, f.des)
@@ -335,14 +365,19 @@ class RotationAgent(FeatureAgent):
         )
 
     def verify(self, s: _RotSlot, view: np.ndarray) -> tuple[bool, float]:
-        """The colour check of ``view`` against the slot's target: ``(accept, score)``.
+        """The check of ``view`` against the slot's target before a stop: ``(accept, score)``.
 
-        Accept when :func:`photometric_score` is at least ``verify_thresh`` and the mean chromaticities
-        differ by at most ``verify_chroma`` on every channel. ``score`` ranks candidates (the score,
-        minus 1 when the chromaticity check failed)."""
+        Content: :func:`structure_score` (correlation of the locally contrast-normalised images, blind
+        to contrast changes and fog) at least ``verify_thresh``. Colour: the mean colours are the same
+        hue up to a gain (:func:`hue_residual` at most ``verify_hue`` grey levels) and their
+        chromaticities differ by at most ``verify_chroma`` on every channel. ``score`` ranks
+        candidates (the structure score, minus 1 when a colour check failed)."""
         tgt: _Target = s.target
-        score = photometric_score(photometric_template(view), tgt.template)
-        colour_ok = float(np.abs(mean_chromaticity(view) - tgt.chroma).max()) <= self.verify_chroma
+        score = structure_score(structure_template(view), tgt.template)
+        colour_ok = (
+            float(np.abs(mean_chromaticity(view) - tgt.chroma).max()) <= self.verify_chroma
+            and hue_residual(tgt.opponent, opponent_mean(view)) <= self.verify_hue
+        )
         return (score >= self.verify_thresh and colour_ok), (score if colour_ok else score - 1.0)
 
     def _pitch_range(self, s: _RotSlot) -> tuple[int, int]:

@@ -27,7 +27,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from findview.episode import DIFFICULTIES, Episode
-from findview_baselines.cli import UserError
+from findview_baselines.errors import UserError
 
 log = logging.getLogger("findview.eval")
 

@@ -85,7 +85,7 @@ def _compose_any(config_name: str, overrides: list[str], return_hydra_config: bo
         from hydra import compose
 
         return compose(config_name, overrides=overrides, return_hydra_config=return_hydra_config)
-    from findview_baselines.cli import compose_config
+    from findview_baselines.config import compose_config
 
     return compose_config(config_name, overrides, return_hydra_config=return_hydra_config)
 

@@ -147,6 +147,55 @@ def load_checkpoint(
     return state
 
 
+def checkpoint_payload(
+    policy: torch.nn.Module,
+    update: int,
+    env_steps: int,
+    config: Mapping[str, Any],
+    val: Mapping[str, Any] | None,
+    best_val_eps: float | None,
+    trainer_state: Mapping[str, Any] | None,
+) -> dict[str, Any]:
+    """The checkpoint dict of the layout in the module docstring (the one place it is built; read back by
+    :func:`load_checkpoint` and :func:`load_policy`). ``trainer_state=None`` for ``best.pth``."""
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "signature": policy.model_signature(),  # type: ignore[operator]
+        "policy": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
+        "update": int(update),
+        "env_steps": int(env_steps),
+        "config": dict(config),
+        "val": val,
+        "best_val_eps": best_val_eps,
+        "trainer": None if trainer_state is None else dict(trainer_state),
+    }
+
+
+def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool = False,
+                key: str | None = None) -> dict[str, Any]:
+    """Load the weights of a checkpoint into ``policy`` after checking its signature; returns the checkpoint.
+
+    ``transfer=True`` (``init_from``) also accepts a checkpoint of a variant with the same parameters
+    (``rl/signature.py: TRANSFERABLE_VARIANTS``, e.g. a ``direct`` agent initialising a ``robust`` one).
+
+    Raises:
+        CheckpointNotFound, CheckpointError: no such file, not a checkpoint, or one whose model differs
+            (naming the file and the first differing model field).
+    """
+    from findview_baselines.rl.signature import check_signature
+
+    state = load_checkpoint(path, map_location=next(policy.parameters()).device, key=key)
+    label = f"{key}={path}" if key else str(path)
+    try:
+        check_signature(state["signature"], policy.model_signature(), transfer=transfer)  # type: ignore[operator]
+    except ValueError as err:
+        raise CheckpointError(f"{label}: {err} (use a checkpoint of the same agent.variant / agent.hidden_size / "
+                              f"view size)") from None
+    policy.load_state_dict(state["policy"])
+    return state
+
+
 def check_writable(folder: str | os.PathLike, what: str = "output folder") -> Path:
     """Create ``folder`` (with parents) and prove a file can be written in it; fail early otherwise.
 

@@ -35,7 +35,8 @@ starts inside a chunk.
 
 A stop request during the rollout (``train_update(should_stop)``) abandons the update with
 ``UpdateAbandoned`` before anything reaches the buffer, and :meth:`DAggerTrainer.state_dict` then describes
-the state before that update, as for ``PPOTrainer``.
+the state before that update, as for ``PPOTrainer`` (both are a :class:`~findview_baselines.rl.trainer_base.Trainer`,
+``kind = "dagger"`` here).
 
 Resume: :meth:`DAggerTrainer.state_dict` holds the policy, the optimizer, the environment (running
 episodes), the current observation / GRU state, every RNG and (``save_buffer``) the buffer, so N updates
@@ -64,25 +65,22 @@ from findview.task.oracle import (
     overlap_mask,
     rotation_labels,
 )
-from findview_baselines.agents.revisit import make_revisit_penalty
 from findview_baselines.rl import distributed
 from findview_baselines.rl.aux_head import AuxHead, aux_loss
-from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
 from findview_baselines.rl.dagger_config import LABEL_MODES, DAggerConfig, beta_at
 from findview_baselines.rl.dagger_loss import set_nll
 from findview_baselines.rl.policy import Policy
-from findview_baselines.rl.ppo_trainer import UpdateAbandoned, no_distribution_validation
 from findview_baselines.rl.scheduler import DifficultyScheduler
+from findview_baselines.rl.search_memory import make_revisit_penalty
 from findview_baselines.rl.sequence_buffer import SequenceBuffer
-from findview_baselines.rl.signature import check_signature
 from findview_baselines.rl.storage import AUX_SIZE
+from findview_baselines.rl.trainer_base import TIMING_KEYS, Trainer, never, no_distribution_validation
 
 __all__ = [
     "DAggerConfig", "DAggerTrainer", "SequenceBuffer", "STAT_KEYS", "TIMING_KEYS", "beta_at", "set_nll",
     "LABEL_MODES",
 ]
 
-TIMING_KEYS = ("env_step", "policy_forward", "rollout_other", "update")
 # scalar entries of train_update()'s stats (besides update / env_steps / level / episodes)
 STAT_KEYS = (
     "policy_loss", "accuracy", "stop_accuracy", "entropy", "grad_norm", "lr", "beta", "buffer_steps",
@@ -97,21 +95,7 @@ STOP = NUM_ACTIONS - 1
 # --------------------------------------------------------------------------------------------------
 
 
-def _masks(env: Any, device: torch.device) -> torch.Tensor:
-    """(N,) float: 0 where the env's current observation starts a new episode."""
-    return (~env.new_episode).to(device=device, dtype=torch.float32)
-
-
-def _never() -> bool:
-    return False
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-class DAggerTrainer:
+class DAggerTrainer(Trainer):
     """DAgger on a batched FindView environment, with the public interface of ``PPOTrainer``.
 
     Args:
@@ -127,6 +111,10 @@ class DAggerTrainer:
     :meth:`start` for a fresh run or :meth:`load_state_dict` to resume; then :meth:`train_update` repeatedly.
     """
 
+    kind = "dagger"
+    title = "DAgger"
+    cfg: DAggerConfig
+
     def __init__(
         self,
         env: Any,
@@ -139,13 +127,7 @@ class DAggerTrainer:
         revisit_penalty: float = 0.0,
         revisit_row_stride: int = 0,
     ) -> None:
-        self.env = env
-        self.policy = policy
-        self.cfg = cfg
-        self.total_updates = int(total_updates)
-        self.scheduler = scheduler
-        self.set_level = set_level
-        self.device = next(policy.parameters()).device
+        super().__init__(env, policy, cfg, total_updates, scheduler, set_level)
         self.aux_head: AuxHead | None = AuxHead(policy.feature_size).to(self.device) if cfg.aux_coef > 0 else None
         self.params = list(policy.parameters()) + (list(self.aux_head.parameters()) if self.aux_head else [])
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, eps=cfg.adam_eps)
@@ -165,11 +147,6 @@ class DAggerTrainer:
         self.target = torch.zeros_like(self.view)
         self.hidden = policy.initial_hidden(n, dev)
         self.masks = torch.zeros(n, device=dev)
-        self.episode_returns = torch.zeros(n, device=dev)
-        self.update = 0
-        self.env_steps = 0
-        self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
-        self._before_update: dict[str, Any] | None = None  # resume parts while a rollout runs
         # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
         self.revisits = make_revisit_penalty(n, dev, revisit_penalty, revisit_row_stride)
         self._all_slots = torch.arange(n, device=dev)
@@ -182,18 +159,19 @@ class DAggerTrainer:
 
     def start(self) -> None:
         """Fresh run: set the difficulty level for ``self.update`` and reset the environments."""
-        if self.scheduler is not None:
-            self.scheduler.step(self.update)
-            if self.set_level is not None:
-                self.set_level(self.scheduler.current_level)
+        self._step_level(force=True)
         self._set_obs(self.env.reset())
         self.hidden.zero_()
-        self.masks.copy_(_masks(self.env, self.device))
+        self.masks.copy_(self._masks())
         self.episode_returns.zero_()
+
+    def extra_modules(self) -> list[nn.Module]:
+        """The auxiliary rotation head when ``aux_coef > 0``, else nothing."""
+        return [self.aux_head] if self.aux_head is not None else []
 
     @torch.no_grad()
     def collect_rollout(
-        self, beta: float, should_stop: Callable[[], bool] = _never
+        self, beta: float, should_stop: Callable[[], bool] = never
     ) -> tuple[list[dict[str, Any]], dict[str, float]]:
         """Run ``rollout_steps`` mixed steps and push the labelled chunks into the buffer.
 
@@ -219,7 +197,7 @@ class DAggerTrainer:
         start = time.perf_counter()
         for t in range(T):
             if should_stop():
-                raise UpdateAbandoned(f"update {self.update + 1} abandoned during its rollout")
+                raise self._abandoned()
             views[t].copy_(self.view)
             targets[t].copy_(self.target)
             masks[t].copy_(self.masks)
@@ -257,13 +235,8 @@ class DAggerTrainer:
             t_env += t2 - t1
             self._set_obs(next_obs)
             self.hidden = new_hidden
-            self.masks = _masks(env, dev)
-            self.episode_returns += rewards.to(dev, torch.float32)
-            finished = [i for i, info in enumerate(infos) if info is not None]
-            if finished:
-                returns = self.episode_returns[finished].tolist()
-                records += [{**infos[i], "return": r} for i, r in zip(finished, returns)]
-            self.episode_returns.masked_fill_(done.to(dev), 0.0)
+            self.masks = self._masks()
+            records += self._track_returns(rewards, done, infos)
 
         L = cfg.seq_len
         for k in range(T // L):
@@ -272,10 +245,7 @@ class DAggerTrainer:
                 views[s], targets[s], hiddens[k], masks[s], labels[s], None if aux is None else aux[s], weights[s]
             )
         self.env_steps += distributed.global_steps(T * n)  # all ranks under torchrun
-        total = time.perf_counter() - start
-        self.timings["policy_forward"] += t_forward
-        self.timings["env_step"] += t_env
-        self.timings["rollout_other"] += total - t_forward - t_env
+        self._add_rollout_timings(t_forward, t_env, time.perf_counter() - start)
         stats = {"oracle_share": executed_oracle / (T * n), "rollout_agreement": float(agree) / (T * n)}
         return records, stats
 
@@ -339,16 +309,14 @@ class DAggerTrainer:
                 totals[f"_n_{key}"] = totals.get(f"_n_{key}", 0.0) + 1.0
         return {k: v / totals[f"_n_{k}"] for k, v in totals.items() if not k.startswith("_n_")}
 
-    def train_update(self, should_stop: Callable[[], bool] = _never) -> dict[str, Any]:
+    def train_update(self, should_stop: Callable[[], bool] = never) -> dict[str, Any]:
         """One mixed rollout + training on the buffer; returns the stats (:data:`STAT_KEYS`, plus
         :data:`AUX_STAT_KEYS` with aux on), ``update``, ``env_steps``, ``level`` and ``episodes``.
 
         ``should_stop`` is polled before every rollout step (see ``PPOTrainer.train_update``). Raises
         ``FloatingPointError`` when the loss, the gradient or the updated weights are not finite.
         """
-        self._before_update = self._resume_parts()
-        if self.scheduler is not None and self.scheduler.step(self.update) and self.set_level is not None:
-            self.set_level(self.scheduler.current_level)
+        self._begin_update()
         cfg = self.cfg
         if cfg.linear_decay and self.total_updates > 0:
             self.lr = cfg.lr * max(0.0, 1.0 - self.update / self.total_updates)
@@ -361,114 +329,67 @@ class DAggerTrainer:
         with no_distribution_validation():
             records, rollout_stats = self.collect_rollout(beta, should_stop)
         self._before_update = None
-        t0 = time.perf_counter()
-        try:
+        with self._timed_update():
             with no_distribution_validation():
                 stats: dict[str, Any] = self._train((cfg.rollout_steps // cfg.seq_len) * self.env.num_envs)
-            self._check_weights()
-        finally:
-            _sync(self.device)
-            self.timings["update"] += time.perf_counter() - t0
+            self._check_weights(self.params)
         self.update += 1
         stats.setdefault("stop_accuracy", float("nan"))
         stats.update(rollout_stats)
         stats["lr"] = self.lr
         stats["beta"] = beta
         stats["buffer_steps"] = len(self.buffer) * cfg.seq_len
-        stats["update"] = self.update
-        stats["env_steps"] = self.env_steps
-        stats["level"] = self.scheduler.current_level if self.scheduler is not None else None
-        stats["episodes"] = records
-        return stats
-
-    def _check_weights(self) -> None:
-        finite = torch.stack([torch.isfinite(p).all() for p in self.params]).all()
-        if not bool(finite):
-            bad = [name for name, p in self.policy.named_parameters() if not torch.isfinite(p).all()]
-            raise FloatingPointError(f"non-finite weights after the optimizer step: {', '.join(bad[:5]) or 'aux head'}")
-
-    def pop_timings(self) -> dict[str, float]:
-        """Seconds per phase since the last call (keys :data:`TIMING_KEYS`), then reset them."""
-        out = dict(self.timings)
-        self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
-        return out
+        return self._finish_stats(stats, records)
 
     # ---------------------------------------------------------------------------------------------
-    # Resume state
+    # Resume state (the common parts: Trainer)
     # ---------------------------------------------------------------------------------------------
 
-    def _resume_parts(self) -> dict[str, Any]:
-        """The parts of the resume state that a rollout changes (environment, current step, RNGs)."""
+    def _learner_parts(self) -> dict[str, Any]:
+        """The aux head, optimizer, lr, buffer sampling generator and (``save_buffer``) the buffer."""
         return {
-            "scheduler": self.scheduler.state_dict() if self.scheduler is not None else None,
-            "env_steps": self.env_steps,
-            "env": self.env.state_dict() if hasattr(self.env, "state_dict") else None,
+            "aux_head": self.aux_head.state_dict() if self.aux_head is not None else None,
+            "optimizer": self.optimizer.state_dict(),
+            "lr": self.lr,
+            "sample_rng": self.sample_generator.get_state(),
+            "buffer": self.buffer.state_dict() if self.cfg.save_buffer else None,
+        }
+
+    def _rollout_parts(self) -> dict[str, Any]:
+        """``current``: observation (N, 3, H, W) uint8, GRU state, masks; ``mix_rng``; the search memory."""
+        return {
             "current": {
                 "view": self.view.cpu().clone(),
                 "target": self.target.cpu().clone(),
                 "hidden": self.hidden.cpu().clone(),
                 "masks": self.masks.cpu().clone(),
             },
-            "episode_returns": self.episode_returns.cpu().clone(),
             "mix_rng": self.mix_generator.get_state(),
-            "rng": capture_rng_state(),
             "revisits": self.revisits.state_dict() if self.revisits is not None else None,
         }
 
-    def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue exactly (plain values + tensors: ``weights_only=True`` loads it).
-
-        After an abandoned update these describe the state before it (the weights, the optimizer and the
-        buffer are untouched by an abandoned rollout)."""
-        parts = self._before_update if self._before_update is not None else self._resume_parts()
-        return {
-            "kind": "dagger",
-            "signature": self.policy.model_signature(),
-            "policy": self.policy.state_dict(),
-            "aux_head": self.aux_head.state_dict() if self.aux_head is not None else None,
-            "optimizer": self.optimizer.state_dict(),
-            "lr": self.lr,
-            "update": self.update,
-            "sample_rng": self.sample_generator.get_state(),
-            "buffer": self.buffer.state_dict() if self.cfg.save_buffer else None,
-            **parts,
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any], restore_rng: bool = True) -> None:
-        """Resume from :meth:`state_dict` (see ``PPOTrainer.load_state_dict``). Raises ``ValueError`` on a
-        model mismatch or a state saved by another trainer."""
-        if state.get("kind") != "dagger":
-            raise ValueError("this trainer state was not saved by the DAgger trainer (trainer=dagger)")
-        check_signature(state["signature"], self.policy.model_signature())
+    def _check_state(self, state: Mapping[str, Any]) -> None:
         if (self.aux_head is None) != (state.get("aux_head") is None):
             raise ValueError(
                 "saved DAgger state and this run disagree on the auxiliary loss (aux_coef > 0 in one only)"
             )
-        self.policy.load_state_dict(state["policy"])
+
+    def _load_learner_parts(self, state: Mapping[str, Any]) -> None:
         if self.aux_head is not None:
             self.aux_head.load_state_dict(state["aux_head"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.lr = float(state["lr"])
-        if self.scheduler is not None and state.get("scheduler") is not None:
-            self.scheduler.load_state_dict(state["scheduler"])
-        self.update = int(state["update"])
-        self.env_steps = int(state["env_steps"])
-        env_state = state.get("env")
-        if env_state is not None and hasattr(self.env, "load_state_dict"):
-            self.env.load_state_dict(env_state)
+        self.sample_generator.set_state(state["sample_rng"])
+        if state.get("buffer") is not None:
+            self.buffer.load_state_dict(state["buffer"])
+
+    def _load_rollout_parts(self, state: Mapping[str, Any]) -> None:
         cur = state.get("current")
         if cur is not None:
             self.view.copy_(cur["view"])
             self.target.copy_(cur["target"])
             self.hidden = cur["hidden"].to(self.device).clone()
             self.masks = cur["masks"].to(self.device).clone()
-        if state.get("episode_returns") is not None:
-            self.episode_returns.copy_(state["episode_returns"])
         self.mix_generator.set_state(state["mix_rng"])
-        self.sample_generator.set_state(state["sample_rng"])
         if self.revisits is not None and state.get("revisits") is not None:
             self.revisits.load_state_dict(state["revisits"])
-        if state.get("buffer") is not None:
-            self.buffer.load_state_dict(state["buffer"])
-        if restore_rng and state.get("rng") is not None:
-            restore_rng_state(state["rng"])

@@ -4,9 +4,9 @@ update). The trainer that uses them is ``dagger.py``."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-from typing import Any, Mapping
+from dataclasses import dataclass
 
+from findview.config import ConfigError
 from findview.task.oracle import ORDERS, SEARCH_PRIORS
 
 __all__ = ["DAggerConfig", "LABEL_MODES", "beta_at"]
@@ -70,39 +70,33 @@ class DAggerConfig:
         positive = ("lr", "rollout_steps", "seq_len", "buffer_size", "batch_sequences", "epochs")
         for name in positive:
             if not getattr(self, name) > 0:
-                raise ValueError(f"trainer.dagger.{name} must be positive, got {getattr(self, name)!r}")
+                raise ConfigError(f"trainer.dagger.{name} must be positive, got {getattr(self, name)!r}")
         if self.rollout_steps % self.seq_len:
-            raise ValueError(
+            raise ConfigError(
                 f"trainer.dagger.rollout_steps ({self.rollout_steps}) must be a multiple of trainer.dagger.seq_len ({self.seq_len})"
             )
         if self.buffer_size < self.seq_len:
-            raise ValueError(
+            raise ConfigError(
                 f"trainer.dagger.buffer_size ({self.buffer_size}) must hold one sequence of {self.seq_len} steps"
             )
         for name in ("beta_start", "beta_end"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
+                raise ConfigError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
         if self.beta_decay_updates < 0:
-            raise ValueError(f"trainer.dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
+            raise ConfigError(f"trainer.dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
         if self.search_weight <= 0:
-            raise ValueError(f"trainer.dagger.search_weight must be positive, got {self.search_weight!r}")
-        if self.stop_weight <= 0 or self.aux_coef < 0 or self.max_grad_norm <= 0:
-            raise ValueError(
-                f"dagger: need stop_weight > 0, aux_coef >= 0, max_grad_norm > 0; got {self.stop_weight}, "
-                f"{self.aux_coef}, {self.max_grad_norm}"
-            )
+            raise ConfigError(f"trainer.dagger.search_weight must be positive, got {self.search_weight!r}")
+        for name in ("stop_weight", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"trainer.dagger.{name} must be positive, got {getattr(self, name)!r}")
+        if self.aux_coef < 0:
+            raise ConfigError(f"trainer.dagger.aux_coef must be 0 (off) or positive, got {self.aux_coef!r}")
         if self.search_prior not in SEARCH_PRIORS:
-            raise ValueError(f"trainer.dagger.search_prior must be one of {SEARCH_PRIORS}, got {self.search_prior!r}")
+            raise ConfigError(f"trainer.dagger.search_prior must be one of {SEARCH_PRIORS}, got {self.search_prior!r}")
         if self.labels not in LABEL_MODES:
-            raise ValueError(f"trainer.dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
+            raise ConfigError(f"trainer.dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
         if self.order not in ORDERS:
-            raise ValueError(f"trainer.dagger.order must be one of {ORDERS}, got {self.order!r}")
-
-    @classmethod
-    def from_mapping(cls, cfg: Mapping[str, Any]) -> "DAggerConfig":
-        """Pick the known keys of a (Hydra / dict) config; other keys are ignored."""
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: cfg[k] for k in known if k in cfg})
+            raise ConfigError(f"trainer.dagger.order must be one of {ORDERS}, got {self.order!r}")
 
 
 def beta_at(cfg: DAggerConfig, update: int) -> float:

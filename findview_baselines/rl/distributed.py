@@ -10,7 +10,7 @@ so that path stays exactly as it was):
 * :func:`mean_std` for statistics over the whole batch (PPO's advantage normalisation);
 * :func:`global_steps` to count env steps of all ranks.
 
-The run loop (:mod:`findview_baselines.rl.run`) does the rest for any trainer: per-rank seeds
+The run loop (:mod:`findview_baselines.training`) does the rest for any trainer: per-rank seeds
 (``seed + rank``) and shards (rank ``r`` of ``K`` takes train images ``r::K``), rank 0's initial
 weights for all (:func:`broadcast_modules`), :func:`reduce_stats` after every update, the agreement on a stop (:class:`AgreedStop`), and rank 0 alone writing
 checkpoints, TensorBoard and the lock (:func:`gather_to_main` collects the other ranks' resume state).

@@ -50,7 +50,7 @@ in ``signature.py``; their names are re-exported here.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import torch
 from torch import nn
@@ -80,6 +80,9 @@ from findview_baselines.rl.encoders import (
     standardize,
 )
 from findview_baselines.rl.signature import OPTIONAL_SIGNATURE_FIELDS, SIGNATURE_FIELDS, check_signature
+
+if TYPE_CHECKING:  # the schema lives above rl/ (it lists rl's variants); only its fields are read here
+    from findview_baselines.config import PPOAgentConfig
 
 __all__ = [
     "NUM_ACTIONS",
@@ -406,19 +409,10 @@ class Policy(nn.Module):
         return dist.log_prob(actions.reshape(-1)), values, dist.entropy()
 
 
-def build_policy(agent_cfg: Mapping[str, Any], height: int, width: int) -> Policy:
-    """Policy from the ``agent`` config (``variant``, ``hidden_size``; speed options ``precision``,
-    ``channels_last``, ``compile``, see :meth:`Policy.configure_speed`) and the view size of ``sim``."""
-    policy = Policy(
-        height=int(height),
-        width=int(width),
-        variant=str(agent_cfg.get("variant", "early_fusion")),
-        hidden_size=int(agent_cfg.get("hidden_size", 512)),
-        fine_shifts=int(agent_cfg.get("fine_shifts", 0) or 0),
-        fine_scales=int(agent_cfg.get("fine_scales", 1) or 1),
-    )
-    return policy.configure_speed(
-        precision=str(agent_cfg.get("precision", None) or "fp32"),
-        channels_last=bool(agent_cfg.get("channels_last", False)),
-        compile=bool(agent_cfg.get("compile", False)),
-    )
+def build_policy(agent: "PPOAgentConfig", height: int, width: int) -> Policy:
+    """Policy from the ``agent`` section (:class:`findview_baselines.config.PPOAgentConfig`: ``variant``,
+    ``hidden_size``, ``fine_shifts``, ``fine_scales``; speed options ``precision``, ``channels_last``,
+    ``compile``, see :meth:`Policy.configure_speed`) and the view size of ``sim`` (pixels)."""
+    policy = Policy(height=int(height), width=int(width), variant=agent.variant, hidden_size=agent.hidden_size,
+                    fine_shifts=agent.fine_shifts, fine_scales=agent.fine_scales)
+    return policy.configure_speed(precision=agent.precision, channels_last=agent.channels_last, compile=agent.compile)

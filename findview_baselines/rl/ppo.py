@@ -19,12 +19,13 @@ weights); every rollout must then be stored with ``aux_targets=rotation_labels(e
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import torch
 from torch import nn
 
+from findview.config import check
 from findview_baselines.rl import distributed
 from findview_baselines.rl.aux_head import AuxHead, aux_loss
 from findview_baselines.rl.policy import Policy
@@ -40,8 +41,8 @@ def linear_decay(initial: float, update: int, total_updates: int) -> float:
 
 @dataclass
 class PPOConfig:
-    """PPO hyper-parameters (the optimisation keys of the ``agent`` config group, ``configs/agent/ppo.yaml``;
-    :class:`findview_baselines.config.PPOAgentConfig` adds the network keys)."""
+    """PPO hyper-parameters: the ``trainer.ppo`` config section (``trainer=ppo``; the network and how it acts
+    are the ``agent`` section, :class:`findview_baselines.config.PPOAgentConfig`). Validated on construction."""
 
     lr: float = 2.5e-4
     """Adam learning rate."""
@@ -84,11 +85,12 @@ class PPOConfig:
     updates with a value function fitted to the inherited policy instead of advantages from a random critic.
     0 = off."""
 
-    @classmethod
-    def from_mapping(cls, cfg: Mapping[str, Any]) -> "PPOConfig":
-        """Pick the known keys of a (Hydra / dict) agent config; other keys (name, variant, ...) are ignored."""
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: cfg[k] for k in known if k in cfg})
+    def __post_init__(self) -> None:
+        for name in ("lr", "adam_eps", "rollout_steps", "ppo_epochs", "num_mini_batches"):
+            check(getattr(self, name) > 0, f"trainer.ppo.{name}", getattr(self, name), "a positive number")
+        check(0 < self.gamma <= 1, "trainer.ppo.gamma", self.gamma, "a discount in (0, 1]")
+        for name in ("aux_coef", "kl_to_init_coef", "critic_warmup_updates"):
+            check(getattr(self, name) >= 0, f"trainer.ppo.{name}", getattr(self, name), "0 (off) or a positive number")
 
 
 def ppo_loss(
@@ -158,8 +160,6 @@ class PPO:
     def __init__(self, policy: Policy, cfg: PPOConfig) -> None:
         self.policy = policy
         self.cfg = cfg
-        if cfg.aux_coef < 0:
-            raise ValueError(f"agent.aux_coef must be >= 0, got {cfg.aux_coef}")
         self.aux_head: AuxHead | None = None
         params = list(policy.parameters())
         if cfg.aux_coef > 0:
@@ -170,12 +170,8 @@ class PPO:
         self.lr = cfg.lr
         self.clip = cfg.clip
         self.progress_update = 0  # the update being made (set_progress), for the critic warm-up
-        if cfg.critic_warmup_updates < 0:
-            raise ValueError(f"agent.critic_warmup_updates must be >= 0, got {cfg.critic_warmup_updates}")
         critic = {id(p) for p in policy.critic.parameters()}
         self.frozen_in_warmup = [p for p in params if id(p) not in critic]
-        if cfg.kl_to_init_coef < 0:
-            raise ValueError(f"agent.kl_to_init_coef must be >= 0, got {cfg.kl_to_init_coef}")
         self.init_policy: Policy | None = None  # frozen copy, made at the first update (after init_from)
 
     def _frozen_copy(self, state: Mapping[str, torch.Tensor] | None = None) -> Policy:
@@ -218,7 +214,7 @@ class PPO:
 
         if self.aux_head is not None and not storage.has_aux_targets:
             raise ValueError(
-                "agent.aux_coef > 0 but the rollout holds no aux targets: pass "
+                "trainer.ppo.aux_coef > 0 but the rollout holds no aux targets: pass "
                 "aux_targets=findview.task.oracle.rotation_labels(env) (taken before env.step) to storage.insert"
             )
         totals: dict[str, float] = {}
@@ -315,7 +311,7 @@ class PPO:
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         if (self.aux_head is None) != (state.get("aux_head") is None):
             raise ValueError(
-                "saved PPO state and this run disagree on the auxiliary loss (agent.aux_coef > 0 in one only)"
+                "saved PPO state and this run disagree on the auxiliary loss (trainer.ppo.aux_coef > 0 in one only)"
             )
         if self.aux_head is not None:
             self.aux_head.load_state_dict(state["aux_head"])

@@ -6,10 +6,8 @@ The environment follows the ``findview.task.FindViewEnv`` contract (docs/ARCHITE
     obs, reward, done, infos = env.step(actions)       # reward (N,), done (N,) bool, infos[i] record or None
     env.new_episode                                    # (N,) bool: obs[i] starts an episode -> mask 0
 
-:class:`PPOTrainer` is one *algorithm* of the run loop (:mod:`findview_baselines.rl.run`); every
-algorithm has the same interface: ``start()``, ``train_update(should_stop) -> stats``,
-``state_dict()`` / ``load_state_dict()``, ``pop_timings()`` and the attributes ``update``,
-``env_steps``, ``policy``, ``env``.
+:class:`PPOTrainer` is one *algorithm* of the training run loop: a
+:class:`~findview_baselines.rl.trainer_base.Trainer` (``kind = "ppo"``), whose interface the run loop drives.
 
 A stop request (a signal) during the rollout abandons the update: :class:`UpdateAbandoned` is raised
 and :meth:`PPOTrainer.state_dict` then describes the state *before* that update (environment, rollout
@@ -27,46 +25,24 @@ import time
 from typing import Any, Callable, Iterator, Mapping
 
 import torch
-from torch.distributions import Distribution
+from torch import nn
 
 from findview.task.oracle import rotation_labels
 from findview_baselines.rl import distributed
-from findview_baselines.rl.checkpoint import capture_rng_state, restore_rng_state
 from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.ppo import PPO, PPOConfig
 from findview_baselines.rl.scheduler import DifficultyScheduler
-from findview_baselines.rl.signature import check_signature
 from findview_baselines.rl.storage import RolloutStorage
+from findview_baselines.rl.trainer_base import (
+    TIMING_KEYS,
+    Trainer,
+    UpdateAbandoned,
+    never,
+    no_distribution_validation,
+)
 
+# UpdateAbandoned, no_distribution_validation and TIMING_KEYS live in trainer_base; re-exported for old imports
 __all__ = ["PPOTrainer", "UpdateAbandoned", "no_distribution_validation", "TIMING_KEYS"]
-
-
-class UpdateAbandoned(Exception):
-    """A stop was requested during the rollout; the update was not done (state: before it)."""
-
-
-def _never() -> bool:
-    return False
-
-
-TIMING_KEYS = ("env_step", "policy_forward", "rollout_other", "update")
-
-
-def _masks(env: Any, device: torch.device) -> torch.Tensor:
-    """(N,) float: 0 where the env's current observation starts a new episode."""
-    return (~env.new_episode).to(device=device, dtype=torch.float32)
-
-
-@contextlib.contextmanager
-def no_distribution_validation() -> Iterator[None]:
-    """Turn off ``torch.distributions`` argument checks (speed; and NaN logits then surface as a non-finite
-    PPO loss, i.e. ``FloatingPointError``, instead of a ``ValueError`` from ``Categorical``)."""
-    previous = Distribution._validate_args
-    Distribution.set_default_validate_args(False)
-    try:
-        yield
-    finally:
-        Distribution.set_default_validate_args(previous)
 
 
 @contextlib.contextmanager
@@ -90,18 +66,12 @@ def _first_steps(storage: RolloutStorage, steps: int) -> Iterator[None]:
             getattr(storage, name)[full].copy_(getattr(storage, name)[steps])
 
 
-def _sync(device: torch.device) -> None:
-    """Wait for queued CUDA work so that wall-clock phase timings are attributed correctly."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 # --------------------------------------------------------------------------------------------------
 # The update loop
 # --------------------------------------------------------------------------------------------------
 
 
-class PPOTrainer:
+class PPOTrainer(Trainer):
     """Collects ``rollout_steps`` steps of ``env.num_envs`` environments per update and runs PPO on them.
 
     Args:
@@ -120,6 +90,11 @@ class PPOTrainer:
     :meth:`pop_timings`.
     """
 
+    kind = "ppo"
+    title = "PPO"
+    supports_preemption = True
+    cfg: PPOConfig
+
     def __init__(
         self,
         env: Any,
@@ -130,40 +105,29 @@ class PPOTrainer:
         set_level: Callable[[int], None] | None = None,
         seed: int = 0,
     ) -> None:
-        self.env = env
-        self.policy = policy
-        self.cfg = cfg
-        self.total_updates = total_updates
-        self.scheduler = scheduler
-        self.set_level = set_level
-        self.device = next(policy.parameters()).device
+        super().__init__(env, policy, cfg, total_updates, scheduler, set_level)
         self.ppo = PPO(policy, cfg)
         self.storage = RolloutStorage(
             cfg.rollout_steps, env.num_envs, policy.height, policy.width, policy.hidden_size, self.device
         )
         self.shuffle_generator = torch.Generator().manual_seed(seed)
-        self.update = 0  # index of the next update (= updates done)
-        self.env_steps = 0
-        self.episode_returns = torch.zeros(env.num_envs, device=self.device)
-        self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
-        self._before_update: dict[str, Any] | None = None  # resume parts while a rollout runs
-        self.preemption: distributed.Preemption | None = None  # straggler preemption (set by the run loop)
         self.collected = cfg.rollout_steps  # steps of the last rollout (fewer when preempted)
 
     # ---------------------------------------------------------------------------------------------
 
     def start(self) -> None:
         """Fresh run: set the difficulty level for ``self.update`` and reset the environments."""
-        if self.scheduler is not None:
-            self.scheduler.step(self.update)
-            if self.set_level is not None:
-                self.set_level(self.scheduler.current_level)
+        self._step_level(force=True)
         obs = self.env.reset()
-        self.storage.set_initial(obs, _masks(self.env, self.device))
+        self.storage.set_initial(obs, self._masks())
         self.episode_returns.zero_()
 
+    def extra_modules(self) -> list[nn.Module]:
+        """The PPO auxiliary rotation head when ``aux_coef > 0``, else nothing."""
+        return [self.ppo.aux_head] if self.ppo.aux_head is not None else []
+
     @torch.no_grad()
-    def collect_rollout(self, should_stop: Callable[[], bool] = _never) -> list[dict[str, Any]]:
+    def collect_rollout(self, should_stop: Callable[[], bool] = never) -> list[dict[str, Any]]:
         """Run ``rollout_steps`` steps, filling the storage; returns the records of finished episodes
         (each with an extra ``"return"``: the undiscounted reward sum).
 
@@ -179,7 +143,7 @@ class PPOTrainer:
         self.collected = 0
         for step in range(T):
             if should_stop():
-                raise UpdateAbandoned(f"update {self.update + 1} abandoned during its rollout")
+                raise self._abandoned()
             if preemption is not None and step >= min_steps and preemption.preempted(self.update):
                 break
             t0 = time.perf_counter()
@@ -195,26 +159,18 @@ class PPOTrainer:
 
             rewards = rewards.to(self.device, torch.float32)
             self.storage.insert(
-                next_obs, new_hidden, actions, log_probs, values, rewards, _masks(self.env, self.device), aux_targets=aux
+                next_obs, new_hidden, actions, log_probs, values, rewards, self._masks(), aux_targets=aux
             )
-            self.episode_returns += rewards
-            finished = [i for i, info in enumerate(infos) if info is not None]
-            if finished:
-                returns = self.episode_returns[finished].tolist()
-                records += [{**infos[i], "return": r} for i, r in zip(finished, returns)]
-            self.episode_returns.masked_fill_(done.to(self.device), 0.0)
+            records += self._track_returns(rewards, done, infos)
             self.collected = step + 1
         if preemption is None:
             self.env_steps += distributed.global_steps(self.cfg.rollout_steps * self.env.num_envs)  # all ranks
         elif self.collected == T:
             preemption.finished(self.update)
-        total = time.perf_counter() - start
-        self.timings["policy_forward"] += t_forward
-        self.timings["env_step"] += t_env
-        self.timings["rollout_other"] += total - t_forward - t_env
+        self._add_rollout_timings(t_forward, t_env, time.perf_counter() - start)
         return records
 
-    def train_update(self, should_stop: Callable[[], bool] = _never) -> dict[str, Any]:
+    def train_update(self, should_stop: Callable[[], bool] = never) -> dict[str, Any]:
         """One rollout + one PPO update; returns PPO stats, level, env steps and the finished episodes.
 
         ``should_stop`` is polled before every rollout step; when it turns true the update is abandoned
@@ -224,9 +180,7 @@ class PPOTrainer:
         Raises ``FloatingPointError`` when the loss, the gradient or the updated weights are not finite
         (the storage is still advanced; do not save the policy after this).
         """
-        self._before_update = self._resume_parts()
-        if self.scheduler is not None and self.scheduler.step(self.update) and self.set_level is not None:
-            self.set_level(self.scheduler.current_level)
+        self._begin_update()
         self.ppo.set_progress(self.update, self.total_updates)
 
         with no_distribution_validation():
@@ -235,27 +189,20 @@ class PPOTrainer:
             else:
                 records = self._collect_preemptible(should_stop)
             self._before_update = None
-            t0 = time.perf_counter()
-            obs, hidden, masks = self.storage.current()
-            with torch.no_grad():
-                next_value = self.policy.get_value(obs, hidden, masks)
-            try:
-                with _first_steps(self.storage, self.collected):
-                    self.storage.values[self.collected].copy_(next_value)  # the bootstrap value of GAE
-                    self.storage.compute_returns(next_value, self.cfg.gamma, self.cfg.gae_lambda)
-                    stats: dict[str, Any] = self.ppo.update(self.storage, self.shuffle_generator)
-                self._check_weights()
-            finally:
-                self.storage.after_update()
-                _sync(self.device)
-                self.timings["update"] += time.perf_counter() - t0
+            with self._timed_update():
+                obs, hidden, masks = self.storage.current()
+                with torch.no_grad():
+                    next_value = self.policy.get_value(obs, hidden, masks)
+                try:
+                    with _first_steps(self.storage, self.collected):
+                        self.storage.values[self.collected].copy_(next_value)  # the bootstrap value of GAE
+                        self.storage.compute_returns(next_value, self.cfg.gamma, self.cfg.gae_lambda)
+                        stats: dict[str, Any] = self.ppo.update(self.storage, self.shuffle_generator)
+                    self._check_weights(self.policy.parameters())
+                finally:
+                    self.storage.after_update()
         self.update += 1
-
-        stats["update"] = self.update
-        stats["env_steps"] = self.env_steps
-        stats["level"] = self.scheduler.current_level if self.scheduler is not None else None
-        stats["episodes"] = records
-        return stats
+        return self._finish_stats(stats, records)
 
     def _collect_preemptible(self, should_stop: Callable[[], bool]) -> list[dict[str, Any]]:
         """:meth:`collect_rollout` with straggler preemption; then every rank learns whether any rank
@@ -267,83 +214,27 @@ class PPOTrainer:
             abandoned = True
         any_abandoned, steps = distributed.all_sum([float(abandoned), float(self.collected * self.env.num_envs)])
         if any_abandoned:
-            raise UpdateAbandoned(f"update {self.update + 1} abandoned during its rollout")
+            raise self._abandoned()
         self.env_steps += int(steps)
         return records
 
-    def _check_weights(self) -> None:
-        """Raise ``FloatingPointError`` if any weight became NaN / inf (e.g. a NaN learning rate)."""
-        finite = torch.stack([torch.isfinite(p).all() for p in self.policy.parameters()]).all()
-        if not bool(finite):
-            bad = [name for name, p in self.policy.named_parameters() if not torch.isfinite(p).all()]
-            raise FloatingPointError(f"non-finite weights after the optimizer step: {', '.join(bad[:5])}")
-
-    def pop_timings(self) -> dict[str, float]:
-        """Seconds per phase since the last call (keys :data:`TIMING_KEYS`), then reset them."""
-        out = dict(self.timings)
-        self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
-        return out
-
     # ---------------------------------------------------------------------------------------------
-    # Resume state
+    # Resume state (the common parts: Trainer)
     # ---------------------------------------------------------------------------------------------
 
-    def _resume_parts(self) -> dict[str, Any]:
-        """The parts of the resume state that a rollout changes (environment, rollout start, RNGs)."""
-        return {
-            "scheduler": self.scheduler.state_dict() if self.scheduler is not None else None,
-            "env_steps": self.env_steps,
-            "env": self.env.state_dict() if hasattr(self.env, "state_dict") else None,
-            "storage": self.storage.state_dict(),
-            "episode_returns": self.episode_returns.cpu().clone(),
-            "shuffle_rng": self.shuffle_generator.get_state(),
-            "rng": capture_rng_state(),
-        }
+    def _learner_parts(self) -> dict[str, Any]:
+        """``ppo``: optimizer, lr / clip, the aux head and the initial policy of ``kl_to_init``."""
+        return {"ppo": self.ppo.state_dict()}
 
-    def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue exactly (plain values + tensors: ``weights_only=True`` loads it).
+    def _rollout_parts(self) -> dict[str, Any]:
+        """``storage``: the rollout start (observation, GRU state, masks); ``shuffle_rng``."""
+        return {"storage": self.storage.state_dict(), "shuffle_rng": self.shuffle_generator.get_state()}
 
-        Includes the environment's state (when it has ``state_dict``), the rollout storage's initial
-        observation / hidden state / masks and every RNG state. After an abandoned update
-        (:class:`UpdateAbandoned`) these describe the state before that update (weights and optimizer
-        are unchanged by a rollout).
-        """
-        parts = self._before_update if self._before_update is not None else self._resume_parts()
-        return {
-            "signature": self.policy.model_signature(),
-            "policy": self.policy.state_dict(),
-            "ppo": self.ppo.state_dict(),
-            "update": self.update,
-            **parts,
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any], restore_rng: bool = True) -> None:
-        """Resume from :meth:`state_dict`. Raises ``ValueError`` on a model mismatch.
-
-        When the state holds the environment and the rollout state (a full checkpoint of a FindView env),
-        the environment continues its running episodes and no :meth:`start` is needed; otherwise call
-        :meth:`start` afterwards. ``restore_rng``: also restore torch / numpy / Python RNGs (do it last,
-        after building everything else, so that construction does not disturb them).
-        """
-        check_signature(state["signature"], self.policy.model_signature())
-        self.policy.load_state_dict(state["policy"])
+    def _load_learner_parts(self, state: Mapping[str, Any]) -> None:
         self.ppo.load_state_dict(state["ppo"])
-        if self.scheduler is not None and state.get("scheduler") is not None:
-            self.scheduler.load_state_dict(state["scheduler"])
-        self.update = int(state["update"])
-        self.env_steps = int(state["env_steps"])
 
-        env_state = state.get("env")
-        if env_state is not None and hasattr(self.env, "load_state_dict"):
-            self.env.load_state_dict(env_state)
-        saved = state.get("storage")
-        if saved is not None:
-            self.storage.load_state_dict(saved)
-        if state.get("episode_returns") is not None:
-            self.episode_returns.copy_(state["episode_returns"])
+    def _load_rollout_parts(self, state: Mapping[str, Any]) -> None:
+        if state.get("storage") is not None:
+            self.storage.load_state_dict(state["storage"])
         if state.get("shuffle_rng") is not None:
             self.shuffle_generator.set_state(state["shuffle_rng"])
-        if restore_rng and state.get("rng") is not None:
-            restore_rng_state(state["rng"])
-
-

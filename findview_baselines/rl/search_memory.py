@@ -1,0 +1,237 @@
+"""Search memory for learned agents: penalise moves back to poses the agent has already visited.
+
+A recurrent policy that is unsure which way the target lies can settle into a loop: left, right, left,
+right, ... until the episode is forced to end at ``T``. :class:`RevisitPenalty` breaks such loops without
+any privileged information. The agent dead-reckons its own moves: it keeps, per environment slot, its
+offset from the episode's start pose on the 1-step action grid (``UP`` = +1 pitch step, ``DOWN`` = -1,
+``RIGHT`` = +1 yaw step, ``LEFT`` = -1; yaw wraps after ``360 / step_deg`` steps) and counts the visits
+of every offset. Before the argmax, each move's logit is lowered by ``penalty x visits(destination)``:
+
+- a move the policy prefers by a wide margin is still taken the first times;
+- in a 2-cycle the visit counts of both poses grow by one per round, so after a few rounds another
+  move (the policy's next choice) wins and the agent leaves the loop;
+- the stop decision is the policy's own: where its argmax is ``STOP`` the agent stops, and nowhere else
+  (penalised moves never make ``STOP`` win by default).
+
+A move that leaves the view unchanged (``UP`` / ``DOWN`` against the simulator's pitch limit) does not
+move the dead-reckoned pose, and the cell it aimed at gains a visit, so pressing into the limit loses its
+appeal like a loop does. (A move in a textureless region can leave a small view unchanged too; it is then
+taken for a blocked one, so the dead reckoning is approximate there, where the view cannot tell poses apart.)
+
+**Row search** (``row_stride > 0``): the memory alone leaves a finished row one step at a time, so a target far
+above or below is found late or never. With a stride ``s`` (in steps; 45 = half of a 90-degree FoV), once the
+rows within 2 steps of the current one hold ``row_cover`` of a full turn of yaw cells, the agent's moves are
+replaced by pitch moves to the next search row, at offsets ``+s, -s, +2s, -2s, ...`` from its start row; there
+the policy acts again. A forced move that is blocked (the pitch limit) skips to the next row; rows beyond
+``max_pitch_steps`` end the search. ``STOP`` still wins wherever it is the policy's argmax.
+
+Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at
+1 degree) on the policy's device; every operation is batched over the slots (no Python loop over environments).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+__all__ = ["RevisitPenalty", "SEARCH_KEYS", "search_settings", "make_revisit_penalty"]
+
+#: the agent-config keys of the search memory (``agent.revisit_penalty``, ``agent.revisit_row_stride``)
+SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride")
+
+
+def search_settings(agent_cfg: Any) -> dict[str, Any]:
+    """``{"revisit_penalty": float, "revisit_row_stride": int}`` from an agent config (mapping; missing = 0)."""
+    get = agent_cfg.get if agent_cfg is not None else (lambda k, d=None: d)
+    return {"revisit_penalty": float(get("revisit_penalty", 0.0) or 0.0),
+            "revisit_row_stride": int(get("revisit_row_stride", 0) or 0)}
+
+
+def make_revisit_penalty(
+    num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0
+) -> "RevisitPenalty | None":
+    """The search memory of ``num_envs`` slots, or ``None`` when ``revisit_penalty`` is 0 (off).
+
+    Raises:
+        ValueError: a negative or NaN penalty, or a negative stride.
+    """
+    penalty = float(revisit_penalty)
+    if penalty < 0 or penalty != penalty:
+        raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
+    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride)) if penalty > 0 else None
+
+#: (pitch, yaw) grid steps of UP, DOWN, LEFT, RIGHT (STOP does not move)
+_MOVES = ((1, 0), (-1, 0), (0, -1), (0, 1))
+
+
+class RevisitPenalty:
+    """Dead-reckoned visit counts per slot, and the logit penalty they imply.
+
+    Args:
+        num_envs: number of environment slots ``N``.
+        penalty: logit units subtracted per earlier visit of a move's destination (``> 0``).
+        device: where the counts live (the policy's device).
+        step_deg: degrees per action (the yaw grid has ``360 / step_deg`` cells).
+        max_pitch_steps: pitch offsets are clamped to ``[-max_pitch_steps, max_pitch_steps]`` steps
+            (180 degrees covers any start and target).
+        row_stride: row search stride in steps (0: off; see the module docstring).
+        row_cover: share of a full turn of yaw cells seen near the current row that ends it (0 < x <= 1).
+    """
+
+    def __init__(
+        self, num_envs: int, penalty: float, device: str | torch.device = "cpu", step_deg: int = 1,
+        max_pitch_steps: int | None = None, row_stride: int = 0, row_cover: float = 0.9,
+    ) -> None:
+        if not penalty > 0:
+            raise ValueError(f"revisit penalty must be > 0 logit units per visit, got {penalty}")
+        if int(row_stride) < 0 or not 0.0 < float(row_cover) <= 1.0:
+            raise ValueError(f"row search: need row_stride >= 0 steps and 0 < row_cover <= 1, got {row_stride}, {row_cover}")
+        if int(step_deg) < 1 or 360 % int(step_deg):
+            raise ValueError(f"step_deg must be a positive divisor of 360, got {step_deg}")
+        self.penalty = float(penalty)
+        self.device = torch.device(device)
+        self.yaw_cells = 360 // int(step_deg)
+        self.max_pitch = int(max_pitch_steps if max_pitch_steps is not None else 180 // int(step_deg))
+        n = int(num_envs)
+        self.visits = torch.zeros((n, 2 * self.max_pitch + 1, self.yaw_cells), dtype=torch.int16, device=self.device)
+        self.pitch = torch.zeros(n, dtype=torch.long, device=self.device)  # offset in steps, 0 at the start
+        self.yaw = torch.zeros(n, dtype=torch.long, device=self.device)  # offset in steps, in [0, yaw_cells)
+        self.last_move = torch.full((n,), -1, dtype=torch.long, device=self.device)  # -1: none pending
+        self.last_view: torch.Tensor | None = None
+        self._moves = torch.tensor(_MOVES, dtype=torch.long, device=self.device)  # (4, 2)
+        # row search (row_stride > 0): after a turn, move to the next search row, start + s, - s, + 2s, - 2s, ...
+        self.row_stride = int(row_stride)
+        self.cover_cells = max(1, int(round(float(row_cover) * self.yaw_cells)))
+        self.row_k = torch.zeros(n, dtype=torch.long, device=self.device)  # index of the current search row
+        self.row_target = torch.zeros(n, dtype=torch.long, device=self.device)  # its pitch offset, steps
+        self.row_seek = torch.zeros(n, dtype=torch.bool, device=self.device)  # on the way to it
+        self.last_blocked = torch.zeros(n, dtype=torch.bool, device=self.device)
+
+    def reset(self, env_ids: torch.Tensor) -> None:
+        """Slots ``env_ids`` (long tensor) start a new episode at offset (0, 0) with no visits."""
+        ids = env_ids.to(self.device)
+        self.visits[ids] = 0.0
+        self.pitch[ids] = 0
+        self.yaw[ids] = 0
+        self.last_move[ids] = -1
+        self.row_k[ids] = 0
+        self.row_target[ids] = 0
+        self.row_seek[ids] = False
+        self.last_blocked[ids] = False
+
+    def _destinations(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pitch row and yaw column of each move's destination: two ``(K, 4)`` long tensors."""
+        p = (self.pitch[idx, None] + self._moves[None, :, 0]).clamp(-self.max_pitch, self.max_pitch) + self.max_pitch
+        y = (self.yaw[idx, None] + self._moves[None, :, 1]) % self.yaw_cells
+        return p, y
+
+    def adjust(self, idx: torch.Tensor, view: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+        """Record the arrival of slots ``idx`` at their current pose; return penalised logits.
+
+        Args:
+            idx: ``(K,)`` long slot indices acting now.
+            view: ``(K, 3, H, W)`` uint8, their current views (a move that left the view unchanged was blocked).
+            logits: ``(K, 5)`` action logits (``UP, DOWN, LEFT, RIGHT, STOP``).
+
+        Returns:
+            ``(K, 5)`` logits: where the policy's argmax is ``STOP``, only ``STOP`` is finite; elsewhere ``STOP`` is
+            ``-inf`` and each move has ``penalty x visits(destination)`` subtracted.
+        """
+        idx = idx.to(self.device)
+        view = view.to(self.device)
+        self._settle(idx, view)
+        rows = self.pitch[idx] + self.max_pitch
+        self.visits[idx, rows, self.yaw[idx]] += 1
+        p, y = self._destinations(idx)
+        seen = self.visits[idx[:, None], p, y]  # (K, 4)
+        out = logits.clone()
+        out[:, :4] = out[:, :4] - self.penalty * seen.to(out.dtype)
+        if self.row_stride > 0:
+            self._row_search(idx, rows, out)
+        # the stop decision stays the policy's own: penalised moves must not make STOP win by default
+        stop = logits.argmax(dim=-1) == 4
+        out[:, 4] = torch.where(stop, logits[:, 4], torch.full_like(logits[:, 4], float("-inf")))
+        out[stop] = torch.where(torch.arange(5, device=out.device) == 4, logits[stop], torch.full_like(logits[stop], float("-inf")))
+        return out
+
+    def _row_search(self, idx: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
+        """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn, force pitch
+        moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the start, ``s = row_stride``); a
+        forced move that is blocked (the pitch limit) skips to the next row. Edits ``out`` (K, 5) in place."""
+        band = (rows[:, None] + torch.arange(-2, 3, device=self.device)[None]).clamp(0, 2 * self.max_pitch)  # (K, 5)
+        coverage = (self.visits[idx[:, None], band] > 0).any(dim=1).sum(dim=-1)  # (K,) yaw cells seen in the band
+        seek = self.row_seek[idx]
+        pitch = self.pitch[idx]
+        blocked = seek & self.last_blocked[idx]
+        seek = seek & (pitch != self.row_target[idx])  # arrived
+        advance = blocked | (~seek & (coverage >= self.cover_cells))
+        k = self.row_k[idx] + advance.long()
+        m = (k + 1) // 2
+        target = torch.where(k % 2 == 1, m, -m) * self.row_stride
+        target = torch.where(advance, target, self.row_target[idx])
+        seek = (seek | advance) & (target.abs() <= self.max_pitch)
+        self.row_k[idx] = k
+        self.row_target[idx] = target
+        self.row_seek[idx] = seek
+        toward = torch.where(target > pitch, 0, 1)  # UP raises the pitch offset, DOWN lowers it
+        forced = torch.full_like(out[:, :4], float("-inf"))
+        forced.scatter_(1, toward[:, None], 0.0)
+        out[:, :4] = torch.where(seek[:, None], forced, out[:, :4])
+
+    def moved(self, idx: torch.Tensor, actions: torch.Tensor) -> None:
+        """Slots ``idx`` take ``actions`` ``(K,)``; their poses move at the next :meth:`adjust`."""
+        self.last_move[idx.to(self.device)] = torch.where(actions < 4, actions, torch.full_like(actions, -1)).to(self.device)
+
+    def _settle(self, idx: torch.Tensor, view: torch.Tensor) -> None:
+        """Apply the pending moves of ``idx`` unless the view did not change (a blocked move)."""
+        if self.last_view is None or self.last_view.shape[1:] != view.shape[1:]:
+            self.last_view = torch.zeros((self.pitch.shape[0],) + tuple(view.shape[1:]), dtype=view.dtype, device=self.device)
+        move = self.last_move[idx]
+        changed = (self.last_view[idx] != view).flatten(1).any(dim=1)
+        go = (move >= 0) & changed
+        step = self._moves[move.clamp(min=0)]  # (K, 2)
+        blocked = (move >= 0) & ~changed
+        self.last_blocked[idx] = blocked
+        if bool(blocked.any()):  # count the unreachable cell as visited, so the blocked move loses its appeal
+            b = idx[blocked]
+            p = (self.pitch[b] + step[blocked, 0]).clamp(-self.max_pitch, self.max_pitch) + self.max_pitch
+            y = (self.yaw[b] + step[blocked, 1]) % self.yaw_cells
+            self.visits[b, p, y] += 1
+        step = step * go[:, None].long()
+        self.pitch[idx] = (self.pitch[idx] + step[:, 0]).clamp(-self.max_pitch, self.max_pitch)
+        self.yaw[idx] = (self.yaw[idx] + step[:, 1]) % self.yaw_cells
+        self.last_move[idx] = -1
+        self.last_view[idx] = view
+
+    # resume state (DAgger rollouts that act with the penalty resume exactly) -------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Counts, poses, pending moves and last views as CPU tensors (``weights_only=True`` loads them)."""
+        return {
+            "visits": self.visits.cpu().clone(),
+            "pitch": self.pitch.cpu().clone(),
+            "yaw": self.yaw.cpu().clone(),
+            "last_move": self.last_move.cpu().clone(),
+            "last_view": None if self.last_view is None else self.last_view.cpu().clone(),
+            "row": torch.stack([self.row_k, self.row_target, self.row_seek.long(), self.last_blocked.long()]).cpu(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`; raises ``ValueError`` if it was saved for another number of slots or grid."""
+        if tuple(state["visits"].shape) != tuple(self.visits.shape):
+            raise ValueError(
+                f"revisit state holds visit counts of shape {tuple(state['visits'].shape)}, this agent needs "
+                f"{tuple(self.visits.shape)} (slots, pitch cells, yaw cells)"
+            )
+        self.visits.copy_(state["visits"])
+        self.pitch.copy_(state["pitch"])
+        self.yaw.copy_(state["yaw"])
+        self.last_move.copy_(state["last_move"])
+        if state.get("row") is not None:
+            row = state["row"].to(self.device)
+            self.row_k.copy_(row[0])
+            self.row_target.copy_(row[1])
+            self.row_seek.copy_(row[2].bool())
+            self.last_blocked.copy_(row[3].bool())
+        last = state.get("last_view")
+        self.last_view = None if last is None else last.to(self.device).clone()
