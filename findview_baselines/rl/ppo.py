@@ -217,7 +217,7 @@ class PPO:
                 "trainer.ppo.aux_coef > 0 but the rollout holds no aux targets: pass "
                 "aux_targets=findview.task.oracle.rotation_labels(env) (taken before env.step) to storage.insert"
             )
-        totals: dict[str, float] = {}
+        totals: dict[str, Any] = {}
         num_batches = 0
         warmup = self.progress_update < cfg.critic_warmup_updates  # only the critic learns
         if cfg.kl_to_init_coef > 0 and self.init_policy is None:
@@ -225,67 +225,13 @@ class PPO:
         self.policy.train()
         for _ in range(cfg.ppo_epochs):
             for batch in storage.recurrent_minibatches(advantages, cfg.num_mini_batches, generator):
-                aux_terms: dict[str, torch.Tensor] | None = None
-                kl_init: torch.Tensor | None = None
-                if self.aux_head is None and self.init_policy is None:
-                    log_probs, values, entropy = self.policy.evaluate_actions(
-                        batch.obs, batch.hidden0, batch.masks, batch.actions
-                    )
-                else:
-                    dist, values, _, features = self.policy.forward_features(batch.obs, batch.hidden0, batch.masks)
-                    log_probs, entropy = dist.log_prob(batch.actions), dist.entropy()
-                    if self.aux_head is not None:
-                        assert batch.aux_targets is not None
-                        aux_terms = aux_loss(self.aux_head(features), batch.aux_targets)
-                    if self.init_policy is not None:
-                        with torch.no_grad():
-                            init_dist = self.init_policy.forward_features(batch.obs, batch.hidden0, batch.masks)[0]
-                        p0 = init_dist.probs
-                        kl_init = (p0 * (init_dist.logits - dist.logits)).sum(dim=-1).mean()
-                terms = ppo_loss(
-                    log_probs,
-                    batch.old_log_probs,
-                    batch.advantages,
-                    values,
-                    batch.old_values,
-                    batch.returns,
-                    entropy,
-                    clip=self.clip,
-                    value_coef=cfg.value_coef,
-                    entropy_coef=cfg.entropy_coef,
-                    clipped_value_loss=cfg.clipped_value_loss,
-                )
-                if aux_terms is not None:
-                    terms["loss"] = terms["loss"] + cfg.aux_coef * aux_terms["loss"]
-                    terms["aux_loss"] = aux_terms["loss"]
-                if kl_init is not None:
-                    terms["loss"] = terms["loss"] + cfg.kl_to_init_coef * kl_init
-                    terms["kl_to_init"] = kl_init
-                self.optimizer.zero_grad(set_to_none=True)
-                terms["loss"].backward()
-                distributed.allreduce_gradients(self.params)  # average over ranks, before clipping
-                if warmup:
-                    for p in self.frozen_in_warmup:
-                        p.grad = None  # Adam skips parameters without a gradient
-                grad_norm = nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
-                # one host sync per mini-batch, before the weights change. Distributed: a non-finite local
-                # loss shows as a non-finite averaged gradient norm on every rank, so all ranks fail together
-                checked = [grad_norm] if distributed.is_active() else [grad_norm, *(v.detach() for v in terms.values())]
-                if not bool(torch.isfinite(torch.stack([v.float().reshape(()) for v in checked])).all()):
-                    if not distributed.is_active():
-                        _check_finite(terms)
-                    raise FloatingPointError(f"non-finite gradient norm: {grad_norm.item()}")
-                self.optimizer.step()
-
+                terms = self._minibatch_terms(batch)
+                grad_norm = self._step(terms, warmup)
                 # statistics stay on the device until the update ends (no per-mini-batch sync)
-                for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"):
-                    totals[name] = totals.get(name, 0.0) + terms[name].detach()
+                for name, value in terms.items():
+                    if name != "loss":
+                        totals[name] = totals.get(name, 0.0) + value.detach()
                 totals["grad_norm"] = totals.get("grad_norm", 0.0) + grad_norm.detach()
-                if kl_init is not None:
-                    totals["kl_to_init"] = totals.get("kl_to_init", 0.0) + kl_init.detach()
-                if aux_terms is not None:
-                    for name in ("loss", "rotation_loss", "overlap_accuracy"):
-                        totals[f"aux_{name}"] = totals.get(f"aux_{name}", 0.0) + aux_terms[name].detach()
                 num_batches += 1
 
         names = list(totals)
@@ -295,6 +241,57 @@ class PPO:
         stats["clip"] = self.clip
         stats["critic_warmup"] = float(warmup)
         return stats
+
+    def _minibatch_terms(self, batch: Any) -> dict[str, torch.Tensor]:
+        """The loss of one mini-batch (``loss``, to minimise) and its reported terms (:func:`ppo_loss`'s, plus
+        ``kl_to_init`` and ``aux_loss, aux_rotation_loss, aux_overlap_accuracy`` when those are on)."""
+        cfg = self.cfg
+        aux_terms: dict[str, torch.Tensor] | None = None
+        kl_init: torch.Tensor | None = None
+        if self.aux_head is None and self.init_policy is None:
+            log_probs, values, entropy = self.policy.evaluate_actions(batch.obs, batch.hidden0, batch.masks, batch.actions)
+        else:
+            dist, values, _, features = self.policy.forward_features(batch.obs, batch.hidden0, batch.masks)
+            log_probs, entropy = dist.log_prob(batch.actions), dist.entropy()
+            if self.aux_head is not None:
+                assert batch.aux_targets is not None
+                aux_terms = aux_loss(self.aux_head(features), batch.aux_targets)
+            if self.init_policy is not None:
+                with torch.no_grad():
+                    init_dist = self.init_policy.forward_features(batch.obs, batch.hidden0, batch.masks)[0]
+                kl_init = (init_dist.probs * (init_dist.logits - dist.logits)).sum(dim=-1).mean()
+        terms = ppo_loss(
+            log_probs, batch.old_log_probs, batch.advantages, values, batch.old_values, batch.returns, entropy,
+            clip=self.clip, value_coef=cfg.value_coef, entropy_coef=cfg.entropy_coef,
+            clipped_value_loss=cfg.clipped_value_loss,
+        )
+        if aux_terms is not None:
+            terms["loss"] = terms["loss"] + cfg.aux_coef * aux_terms["loss"]
+            terms.update({f"aux_{name}": aux_terms[name] for name in ("loss", "rotation_loss", "overlap_accuracy")})
+        if kl_init is not None:
+            terms["loss"] = terms["loss"] + cfg.kl_to_init_coef * kl_init
+            terms["kl_to_init"] = kl_init
+        return terms
+
+    def _step(self, terms: dict[str, torch.Tensor], warmup: bool) -> torch.Tensor:
+        """Backward, average the gradients over the ranks, clip and step; returns the pre-clipping gradient norm.
+        Raises ``FloatingPointError`` (before the step) if the loss or the gradient norm is not finite."""
+        self.optimizer.zero_grad(set_to_none=True)
+        terms["loss"].backward()
+        distributed.allreduce_gradients(self.params)  # average over ranks, before clipping
+        if warmup:
+            for p in self.frozen_in_warmup:
+                p.grad = None  # Adam skips parameters without a gradient
+        grad_norm = nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm)
+        # one host sync per mini-batch, before the weights change. Distributed: a non-finite local
+        # loss shows as a non-finite averaged gradient norm on every rank, so all ranks fail together
+        checked = [grad_norm] if distributed.is_active() else [grad_norm, *(v.detach() for v in terms.values())]
+        if not bool(torch.isfinite(torch.stack([v.float().reshape(()) for v in checked])).all()):
+            if not distributed.is_active():
+                _check_finite(terms)
+            raise FloatingPointError(f"non-finite gradient norm: {grad_norm.item()}")
+        self.optimizer.step()
+        return grad_norm
 
     # ---------------------------------------------------------------------------------------------
 

@@ -155,6 +155,67 @@ def indoor_scene(rng: np.random.Generator, width: int, big: bool) -> np.ndarray:
     return np.clip(col, 0, 255).astype(np.uint8).reshape(H, width, 3)
 
 
+def _add_clouds(rng: np.random.Generator, sky: np.ndarray, d: tuple[np.ndarray, ...], lat: np.ndarray, W: int,
+                H: int) -> None:
+    """Clouds on a plane 1.5 km up (8 m per texel, tileable, 5 mip levels), faded out near the horizon,
+    blended into ``sky`` ((rows * W, 3) float RGB of the rows at or above the horizon) in place."""
+    dx, dy, dz = d
+    csize, cm = 1024, 8.0
+    alpha_tex = paint_clouds(rng, csize, rng.uniform(0.25, 0.65))
+    shade_tex = 0.78 + 0.22 * np.clip(0.5 + 0.3 * fbm(rng, csize, csize, 64, 5, wrap=True), 0, 1)
+    mip = np.stack([alpha_tex, shade_tex.astype(F32)], -1)
+    rc = int(np.count_nonzero(lat > 1.0))  # rows that can show clouds
+    if rc > 0:
+        up = np.maximum(dy[: rc * W], 0.01)
+        tc = 1500.0 / up
+        cx = (tc * dx[: rc * W] / cm).reshape(rc, W)
+        cz = (tc * dz[: rc * W] / cm).reshape(rc, W)
+        lvl = np.clip(np.log2(np.maximum(tc * (np.pi / H) / cm, 1e-6)), 0, 4).reshape(rc, W)
+        c_acc = np.zeros((rc, W, 2), F32)
+        for k in range(5):
+            sc = 2.0**k
+            wgt = np.clip(1 - np.abs(lvl - k), 0, 1)
+            if wgt.any():
+                mx = np.mod(cx / sc, mip.shape[1]).astype(F32)
+                mz = np.mod(cz / sc, mip.shape[0]).astype(F32)
+                c_acc += cv2.remap(mip, mx, mz, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP) * wgt[..., None]
+            mip = cv2.pyrDown(np.pad(mip, ((2, 2), (2, 2), (0, 0)), mode="wrap"))[1:-1, 1:-1]
+        alpha = (c_acc[..., 0] * np.clip((lat[:rc, None] - 1.0) / 10.0, 0, 1)).reshape(-1, 1)
+        cloud_col = np.array([252, 252, 250], F32) * c_acc[..., 1].reshape(-1, 1)
+        sky[: rc * W] = sky[: rc * W] * (1 - alpha) + cloud_col * alpha
+
+
+def _add_mountains(rng: np.random.Generator, bg: np.ndarray, lat: np.ndarray, nb: int, W: int, haze: np.ndarray) -> None:
+    """3 ridgelines (far to near) at infinity, snow-capped and hazy, painted into ``bg`` ((nb, W, 3) float RGB of
+    the rows at or above the horizon; ``lat`` their latitudes, degrees) on the band just above the horizon."""
+    layer_col = [np.array(random_rgb(rng, (0.1, 0.5), (0.25, 0.6), rng.uniform(0.2, 0.6), 0.1), F32) for _ in range(3)]
+    elevs = []
+    for k in range(3):
+        cell = max(1, W // 8)
+        prof = fbm(rng, cell, W, cell, 7, 0.55, wrap=True)[0]
+        ridge = 1 - np.abs(prof) / (np.abs(prof).max() + 1e-6)
+        elevs.append((rng.uniform(1.5, 4) + rng.uniform(6, 22 - 5 * k) * ridge**1.5).astype(F32))
+    r0 = int(np.count_nonzero(lat > max(float(e.max()) for e in elevs) + 0.5))
+    band = bg[r0:nb]
+    bh = nb - r0
+    if bh > 0:
+        rock = fbm(rng, bh, W, max(2, W // 256), 6, 0.6, wrap=True)
+        detail = rng.standard_normal((bh, W), dtype=F32)
+        lat2 = lat[r0:nb, None]
+        for k in range(3):
+            elev = elevs[k][None, :]
+            mask = lat2 < elev
+            c = layer_col[k] * (0.7 + 0.16 * rock + 0.1 * detail)[..., None]
+            snowline = float(elevs[k].max()) * rng.uniform(0.55, 0.9)
+            if k < 2:
+                snow = lat2 > snowline + 1.5 * rock
+                c = np.where(snow[..., None], np.array([240, 240, 245], F32) * (0.85 + 0.08 * rock[..., None]), c)
+            h_fog = ((0.65 - 0.25 * k) + 0.25 * np.clip(1 - lat2 / np.maximum(elev, 1e-3), 0, 1))[..., None]
+            c = c * (1 - h_fog) + haze * h_fog
+            band = np.where(mask[..., None], c, band)
+        bg[r0:nb] = band
+
+
 def outdoor_scene(rng: np.random.Generator, width: int, village: bool) -> np.ndarray:
     """A ``landscape`` (``village=False``) or ``village``: ground plane, rocks (and houses, crates), sky,
     sun, clouds and mountain ridges; ``(width // 2, width, 3)`` RGB uint8."""
@@ -212,58 +273,9 @@ def outdoor_scene(rng: np.random.Generator, width: int, village: bool) -> np.nda
     cosang = dx * sun[0] + dy * sun[1] + dz * sun[2]
     glow = (np.clip(cosang, 0, 1) ** 300 * 0.6 + (cosang > math.cos(math.radians(1.5))) * 0.8).astype(F32)
     sky += glow[:, None] * (np.array([255, 250, 230], F32) - sky)
-    # clouds on a plane 1.5 km up, 8 m per texel, tileable, 5 mip levels; faded out near the horizon
-    csize, cm = 1024, 8.0
-    alpha_tex = paint_clouds(rng, csize, rng.uniform(0.25, 0.65))
-    shade_tex = 0.78 + 0.22 * np.clip(0.5 + 0.3 * fbm(rng, csize, csize, 64, 5, wrap=True), 0, 1)
-    mip = np.stack([alpha_tex, shade_tex.astype(F32)], -1)
-    rc = int(np.count_nonzero(lat > 1.0))  # rows that can show clouds
-    if rc > 0:
-        up = np.maximum(dy[: rc * W], 0.01)
-        tc = 1500.0 / up
-        cx = (tc * dx[: rc * W] / cm).reshape(rc, W)
-        cz = (tc * dz[: rc * W] / cm).reshape(rc, W)
-        lvl = np.clip(np.log2(np.maximum(tc * (np.pi / H) / cm, 1e-6)), 0, 4).reshape(rc, W)
-        c_acc = np.zeros((rc, W, 2), F32)
-        for k in range(5):
-            sc = 2.0**k
-            wgt = np.clip(1 - np.abs(lvl - k), 0, 1)
-            if wgt.any():
-                mx = np.mod(cx / sc, mip.shape[1]).astype(F32)
-                mz = np.mod(cz / sc, mip.shape[0]).astype(F32)
-                c_acc += cv2.remap(mip, mx, mz, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP) * wgt[..., None]
-            mip = cv2.pyrDown(np.pad(mip, ((2, 2), (2, 2), (0, 0)), mode="wrap"))[1:-1, 1:-1]
-        alpha = (c_acc[..., 0] * np.clip((lat[:rc, None] - 1.0) / 10.0, 0, 1)).reshape(-1, 1)
-        cloud_col = np.array([252, 252, 250], F32) * c_acc[..., 1].reshape(-1, 1)
-        sky[: rc * W] = sky[: rc * W] * (1 - alpha) + cloud_col * alpha
+    _add_clouds(rng, sky, (dx, dy, dz), lat, W, H)
     bg = sky.reshape(nb, W, 3)
-    # mountains: 3 ridgelines (far to near) at infinity, on the band of rows just above the horizon
-    layer_col = [np.array(random_rgb(rng, (0.1, 0.5), (0.25, 0.6), rng.uniform(0.2, 0.6), 0.1), F32) for _ in range(3)]
-    elevs = []
-    for k in range(3):
-        cell = max(1, W // 8)
-        prof = fbm(rng, cell, W, cell, 7, 0.55, wrap=True)[0]
-        ridge = 1 - np.abs(prof) / (np.abs(prof).max() + 1e-6)
-        elevs.append((rng.uniform(1.5, 4) + rng.uniform(6, 22 - 5 * k) * ridge**1.5).astype(F32))
-    r0 = int(np.count_nonzero(lat > max(float(e.max()) for e in elevs) + 0.5))
-    band = bg[r0:nb]
-    bh = nb - r0
-    if bh > 0:
-        rock = fbm(rng, bh, W, max(2, W // 256), 6, 0.6, wrap=True)
-        detail = rng.standard_normal((bh, W), dtype=F32)
-        lat2 = lat[r0:nb, None]
-        for k in range(3):
-            elev = elevs[k][None, :]
-            mask = lat2 < elev
-            c = layer_col[k] * (0.7 + 0.16 * rock + 0.1 * detail)[..., None]
-            snowline = float(elevs[k].max()) * rng.uniform(0.55, 0.9)
-            if k < 2:
-                snow = lat2 > snowline + 1.5 * rock
-                c = np.where(snow[..., None], np.array([240, 240, 245], F32) * (0.85 + 0.08 * rock[..., None]), c)
-            h_fog = ((0.65 - 0.25 * k) + 0.25 * np.clip(1 - lat2 / np.maximum(elev, 1e-3), 0, 1))[..., None]
-            c = c * (1 - h_fog) + haze * h_fog
-            band = np.where(mask[..., None], c, band)
-        bg[r0:nb] = band
+    _add_mountains(rng, bg, lat, nb, W, haze)
     out = col.reshape(H, W, 3)
     out[:nb] = np.where(hit[:m, None], col[:m], bg.reshape(-1, 3)).reshape(nb, W, 3)
     return np.clip(out, 0, 255).astype(np.uint8)
