@@ -84,10 +84,14 @@ def runs_for(scale: int, base_lr: float, base_mini_batches: int, with_sqrt: bool
 
 def evaluate(cfg, checkpoint: Path, episodes) -> dict[str, float]:
     """Greedy eps / omega_stop / SPL of ``checkpoint`` on the fixed ``episodes``."""
-    policy = build_policy(cfg.agent, SIZE, SIZE)
+    from findview.config import SimConfig
+    from findview_baselines.cli import validate_config
+
+    typed = validate_config(cfg)
+    policy = build_policy(typed.agent, SIZE, SIZE)
     load_policy(checkpoint, policy)
-    sim_cfg = {"fov": 90, "height": SIZE, "width": SIZE, "device": "cpu", "prefetch_workers": 0}
-    env = build_static_env(sim_cfg, cfg.task, episodes, 16, max_steps=MAX_STEPS)
+    sim_cfg = SimConfig(fov=90, height=SIZE, width=SIZE, device="cpu", prefetch_workers=0)
+    env = build_static_env(sim_cfg, typed.task, episodes, 16, max_steps=MAX_STEPS)
     return aggregate(run_episodes(env, PPOAgent(policy, 16), progress=False)[0])
 
 

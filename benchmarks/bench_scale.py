@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train import find_panoramas  # noqa: E402  (sun360_mini or procedural panoramas)
 
 from findview.build import build_sampled_env  # noqa: E402
+from findview.config import SimConfig, TaskConfig  # noqa: E402
 from findview.dataset import EpisodeSampler, ImageEntry  # noqa: E402
 from findview.sim import resolve_device  # noqa: E402
 from findview.utils import atomic_write, write_text  # noqa: E402
@@ -107,8 +108,8 @@ def measure(n: int, cfg: SpeedConfig, images: list[ImageEntry], device: torch.de
     T = rollout_steps_for(n, device, args.rollout_steps)
     mb_cap = args.mb_samples or (512 if device.type == "cpu" else 8192)
     num_mb = min(n, max(1, math.ceil(n * T / mb_cap)))
-    sim_cfg = {"fov": FOV, "height": SIZE, "width": SIZE, "device": str(device), "bank_mb": args.bank_mb}
-    env = build_sampled_env(sim_cfg, {}, EpisodeSampler(images, FOV, seed=0), n)
+    sim_cfg = SimConfig(fov=FOV, height=SIZE, width=SIZE, device=str(device), bank_mb=args.bank_mb)
+    env = build_sampled_env(sim_cfg, TaskConfig(), EpisodeSampler(images, FOV, seed=0), n)
     env.source.level = 3
     agent = PPOAgentConfig(hidden_size=HIDDEN, precision=cfg.precision, channels_last=cfg.channels_last,
                            compile=cfg.compile)

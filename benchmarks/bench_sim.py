@@ -23,6 +23,7 @@ from findview.episode import Episode
 from findview.imageio import load_panorama
 from findview.sim import PanoramaBank, Simulator, equi2pers
 from findview.build import build_static_env
+from findview.config import SimConfig, TaskConfig
 
 DEFAULT_DATA = Path(os.environ.get("FINDVIEW_SUN360_MINI", "") or "/nonexistent")  # a folder of SUN360 panoramas
 
@@ -108,8 +109,8 @@ def main() -> None:
         for i in range(4000)
     ]
     for device in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
-        sim_cfg = {"fov": 90, "height": 256, "width": 256, "device": device, "bank_mb": 1024}
-        env = build_static_env(sim_cfg, {"max_steps": 5000}, episodes, n_envs)
+        sim_cfg = SimConfig(fov=90, height=256, width=256, device=device, bank_mb=1024)
+        env = build_static_env(sim_cfg, TaskConfig(), episodes, n_envs)
         env.reset()
         env.sim.build_all_grids(env.sim.bank.equi_height)  # grids are built on first use: keep that out of the timing
         gen = torch.Generator().manual_seed(0)

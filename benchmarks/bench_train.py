@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 from findview.build import build_sampled_env
+from findview.config import SimConfig, TaskConfig
 from findview.dataset import EpisodeSampler, ImageEntry
 from findview.sim import resolve_device
 from findview_baselines.rl.policy import Policy
@@ -87,9 +88,9 @@ def find_panoramas(tmp: Path) -> list[ImageEntry]:
 def run_setting(setting: Setting, images: list[ImageEntry], device: torch.device, updates: int) -> Result:
     """One warm-up update, then ``updates`` timed ones; returns steps/s and seconds per update per phase."""
     torch.manual_seed(0)
-    sim_cfg = {"fov": 90, "height": setting.size, "width": setting.size, "device": str(device), "bank_mb": 4096}
+    sim_cfg = SimConfig(fov=90, height=setting.size, width=setting.size, device=str(device), bank_mb=4096)
     sampler = EpisodeSampler(images, 90, seed=0)
-    env = build_sampled_env(sim_cfg, {}, sampler, setting.num_envs)
+    env = build_sampled_env(sim_cfg, TaskConfig(), sampler, setting.num_envs)
     env.source.level = 3
     policy = Policy(setting.size, setting.size, "early_fusion", 512).to(device)
     cfg = PPOConfig(rollout_steps=setting.rollout_steps, num_mini_batches=setting.num_mini_batches)

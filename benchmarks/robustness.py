@@ -131,10 +131,11 @@ def _agent_has_threads(name: str, seen: frozenset[str] = frozenset()) -> bool:
     if "threads" in doc:
         return True
     for entry in doc.get("defaults") or []:
-        if isinstance(entry, str) and entry in ("base_feature", "base_rotation"):
+        base = entry.split("@", 1)[0].lstrip("/") if isinstance(entry, str) else None  # "/base_feature@_here_"
+        if base in ("base_feature", "base_rotation"):  # schemas with threads (their files need not restate it)
             return True
-        if isinstance(entry, str) and not entry.startswith("base_") and entry != "_self_":
-            if _agent_has_threads(entry, seen | {name}):
+        if base is not None and not base.startswith("base_") and base != "_self_":
+            if _agent_has_threads(base, seen | {name}):
                 return True
     return False
 

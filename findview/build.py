@@ -2,36 +2,23 @@
 
 Used by ``tools/train.py`` (training and validation environments), ``tools/eval.py``,
 ``tools/render_episode.py``, the benchmarks and the tests, so that they all render, clamp, reward and
-corrupt the same way. Config sections may be Hydra ``DictConfig`` nodes, the dataclasses of
-:mod:`findview.config`, or plain mappings.
+corrupt the same way. The sections are the validated objects of :mod:`findview.config` (``SimConfig``,
+``TaskConfig``, ``CorruptionConfig``); code holding a mapping or a ``DictConfig`` converts it once with
+:func:`findview.config.as_section`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
-
+from findview.config import CorruptionConfig, SimConfig, TaskConfig
 from findview.episode import Episode
 
-__all__ = ["section_get", "build_simulator", "build_env", "build_static_env", "build_sampled_env", "build_target_transform"]
+__all__ = ["build_simulator", "build_env", "build_static_env", "build_sampled_env", "build_target_transform"]
 
 
-def section_get(section: Any, key: str, default: Any = None) -> Any:
-    """``section.key`` for a DictConfig / dataclass / mapping; ``default`` when missing or null."""
-    if section is None:
-        return default
-    if isinstance(section, Mapping):
-        value = section.get(key, default)
-    else:
-        try:
-            value = section.get(key, default) if hasattr(section, "get") else getattr(section, key, default)
-        except Exception:
-            value = getattr(section, key, default)
-    return default if value is None else value
-
-
-def build_simulator(sim_cfg: Any, pitch_bound: int, images: Iterable[str], min_slots: int):
+def build_simulator(sim_cfg: SimConfig, pitch_bound: int, images: Iterable[str], min_slots: int):
     """A :class:`~findview.sim.Simulator` over a :class:`~findview.sim.PanoramaBank` sized for ``images``.
 
     Args:
@@ -43,47 +30,47 @@ def build_simulator(sim_cfg: Any, pitch_bound: int, images: Iterable[str], min_s
     """
     from findview.sim import PanoramaBank, Simulator, resolve_device
 
-    device = resolve_device(str(section_get(sim_cfg, "device", "auto")))
     bank = PanoramaBank(
-        device,
-        budget_mb=float(section_get(sim_cfg, "bank_mb", 2048)),
-        equi_height=section_get(sim_cfg, "equi_height"),
-        prefetch_workers=int(section_get(sim_cfg, "prefetch_workers", 2)),
+        resolve_device(str(sim_cfg.device)),
+        budget_mb=float(sim_cfg.bank_mb),
+        equi_height=sim_cfg.equi_height,
+        prefetch_workers=int(sim_cfg.prefetch_workers),
         max_panoramas=max(1, len(set(images))),
         min_slots=int(min_slots),
     )
     return Simulator(
         bank,
-        fov=float(section_get(sim_cfg, "fov", 90)),
-        height=int(section_get(sim_cfg, "height", 256)),
-        width=int(section_get(sim_cfg, "width", 256)),
+        fov=float(sim_cfg.fov),
+        height=int(sim_cfg.height),
+        width=int(sim_cfg.width),
         pitch_bound=int(pitch_bound),
-        mode=str(section_get(sim_cfg, "mode", "bilinear")),
-        backend=str(section_get(sim_cfg, "backend", "auto")),
+        mode=str(sim_cfg.mode),
+        backend=str(sim_cfg.backend),
     )
 
 
-def build_target_transform(corruption_cfg: Any):
-    """The per-episode target corruption of the ``corruption`` section, or ``None`` for ``name: none``."""
+def build_target_transform(corruption_cfg: CorruptionConfig | None):
+    """The per-episode target corruption of the ``corruption`` section, or ``None`` for ``name: none`` (or no
+    section)."""
     if corruption_cfg is None:
         return None
     from findview.corruptions import resolve_names
 
-    names = resolve_names(section_get(corruption_cfg, "name", "none"))
+    names = resolve_names(corruption_cfg.name)
     if not names:
         return None
     from findview.task.target_corruption import EpisodeCorruption
 
-    severity = section_get(corruption_cfg, "severity", 3)
+    severity = corruption_cfg.severity
     levels = [int(s) for s in severity] if isinstance(severity, Sequence) and not isinstance(severity, str) else [int(severity)]
-    return EpisodeCorruption(names, min(levels), max(levels), float(section_get(corruption_cfg, "clean_fraction", 0.0)))
+    return EpisodeCorruption(names, min(levels), max(levels), float(corruption_cfg.clean_fraction))
 
 
 def build_env(
     simulator: Any,
     source: Any,
     num_envs: int,
-    task_cfg: Any,
+    task_cfg: TaskConfig,
     *,
     max_steps: int | None = None,
     target_transform: Any = None,
@@ -96,32 +83,27 @@ def build_env(
         target_transform: applied once to every new target (see :func:`build_target_transform`).
     """
     from findview.task import FindViewEnv
-    from findview.task.rewards import RewardConfig
 
-    reward = section_get(task_cfg, "reward")
-    if reward is not None and not isinstance(reward, RewardConfig):
-        keys = ("name", "alpha", "beta", "dist_coef", "slack", "bell_sigma")
-        reward = RewardConfig(**{k: section_get(reward, k) for k in keys if section_get(reward, k) is not None})
     return FindViewEnv(
         simulator,
         source,
         int(num_envs),
-        max_steps=int(max_steps if max_steps is not None else section_get(task_cfg, "max_steps", 5000)),
-        pitch_bound=int(section_get(task_cfg, "pitch_bound", 60)),
-        step_deg=int(section_get(task_cfg, "step_deg", 1)),
-        reward=reward,
+        max_steps=int(max_steps if max_steps is not None else task_cfg.max_steps),
+        pitch_bound=int(task_cfg.pitch_bound),
+        step_deg=int(task_cfg.step_deg),
+        reward=task_cfg.reward,
         auto_reset=auto_reset,
         target_transform=target_transform,
     )
 
 
 def build_static_env(
-    sim_cfg: Any,
-    task_cfg: Any,
+    sim_cfg: SimConfig,
+    task_cfg: TaskConfig,
     episodes: Sequence[Episode],
     num_envs: int,
     *,
-    corruption_cfg: Any = None,
+    corruption_cfg: CorruptionConfig | None = None,
     max_steps: int | None = None,
     simulator: Any = None,
 ):
@@ -129,7 +111,7 @@ def build_static_env(
     (validation and evaluation)."""
     from findview.task import StaticEpisodeSource
 
-    pitch_bound = int(section_get(task_cfg, "pitch_bound", 60))
+    pitch_bound = int(task_cfg.pitch_bound)
     if simulator is None:
         simulator = build_simulator(sim_cfg, pitch_bound, [e.image for e in episodes], num_envs)
     return build_env(
@@ -139,13 +121,13 @@ def build_static_env(
 
 
 def build_sampled_env(
-    sim_cfg: Any,
-    task_cfg: Any,
+    sim_cfg: SimConfig,
+    task_cfg: TaskConfig,
     sampler: Any,
     num_envs: int,
     *,
     mode: str = "unbounded",
-    corruption_cfg: Any = None,
+    corruption_cfg: CorruptionConfig | None = None,
     simulator: Any = None,
     extra_images: Iterable[str] = (),
     extra_slots: int = 0,
@@ -155,7 +137,7 @@ def build_sampled_env(
     ``extra_images`` / ``extra_slots``: what other environments sharing the simulator need (validation)."""
     from findview.task.sources import SampledEpisodeSource
 
-    pitch_bound = int(section_get(task_cfg, "pitch_bound", 60))
+    pitch_bound = int(task_cfg.pitch_bound)
     if simulator is None:
         images = [im.path if hasattr(im, "path") else str(im) for im in getattr(sampler, "images", [])]
         simulator = build_simulator(sim_cfg, pitch_bound, [*images, *extra_images], num_envs + extra_slots)

@@ -15,7 +15,7 @@ itself (conventions, difficulties, metrics, rewards) is described in docs/TASK.m
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Optional, TypeVar
 
 from findview.task.rewards import RewardConfig
 
@@ -28,7 +28,10 @@ __all__ = [
     "CorruptionConfig",
     "register_core_configs",
     "check",
+    "as_section",
 ]
+
+T = TypeVar("T")
 
 
 class ConfigError(ValueError):
@@ -220,3 +223,20 @@ def register_core_configs() -> None:
     cs.store(name="base_task", node=TaskConfig)
     cs.store(name="base_dataset", node=DatasetConfig)
     cs.store(name="base_corruption", node=CorruptionConfig)
+
+
+def as_section(obj: Any, schema: type[T]) -> T:
+    """The boundary conversion for code outside the tools (tests, benchmarks, notebooks): ``obj`` as a validated
+    ``schema`` object. An instance of ``schema`` is returned as it is; ``None`` gives the schema's defaults; a
+    mapping or a ``DictConfig`` is merged onto the schema (an unknown key or a wrong type raises OmegaConf's
+    error naming it), its interpolations resolved and its range checks run (:class:`ConfigError`).
+
+    The builders (:mod:`findview.build`, :mod:`findview.dataset.prepare`) take the objects only."""
+    if isinstance(obj, schema):
+        return obj
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.structured(schema)
+    if obj is not None:
+        node = OmegaConf.merge(node, obj)
+    return OmegaConf.to_object(node)  # type: ignore[return-value]

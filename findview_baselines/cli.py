@@ -5,7 +5,7 @@ A tool is::
 
     from findview_baselines.cli import run_tool
 
-    def main(cfg: DictConfig, ctx: ToolContext) -> None: ...
+    def main(cfg: EvalConfig, ctx: ToolContext) -> None: ...   # the validated object tree
 
     if __name__ == "__main__":
         run_tool("eval", main)
@@ -16,7 +16,9 @@ A tool is::
 2. composes the config of every job of the command line (each combination of a ``-m`` sweep) and turns
    it into objects, so a wrong type, an unknown key (presets included) or an out-of-range value stops the
    command before anything runs: one line ``<tool>: error: <key>=<value>: expected ...`` on stderr, exit 2;
-3. hands over to Hydra (run folder, logging, multirun), calling ``main`` per job;
+3. hands over to Hydra (run folder, logging, multirun), calling ``main(typed, ctx)`` per job with the
+   job's validated object tree (:class:`~findview_baselines.config.TrainConfig`,
+   :class:`~findview_baselines.config.EvalConfig`, ...: the schemas' dataclasses, every value resolved);
 4. maps what ``main`` raises: :data:`USER_ERRORS` -> one line and exit 2 (a run folder left with only
    Hydra's files is removed); ``KeyboardInterrupt`` -> exit 130; :class:`Interrupted` (a SIGTERM / SIGINT
    turned into a clean stop by the trainer) -> exit 128 + signal number. Anything else is a bug and
@@ -34,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from findview.config import ConfigError
 from findview_baselines.config import (  # re-exported: composition and the one-line errors
@@ -87,11 +89,7 @@ class ToolContext:
     choices: dict[str, str] = field(default_factory=dict)
     """Config-group choices, e.g. ``{"agent": "sift", "dataset": "synthetic"}``."""
     overrides: list[str] = field(default_factory=list)
-    """The job's command-line overrides."""
-
-    def overridden(self, key: str) -> bool:
-        """Whether ``key`` (or a group choice ``key=...``) was given on the command line."""
-        return any(o.split("=", 1)[0].lstrip("+~") == key for o in self.overrides)
+    """The job's command-line overrides (what the user set, e.g. for keys a checkpoint must not replace)."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -120,11 +118,24 @@ def _job_overrides(argv: Sequence[str], multirun: bool) -> list[list[str]]:
 def validate_config(cfg: DictConfig) -> Any:
     """Instantiate the schemas of ``cfg`` (without its ``hydra`` node), which runs every range check.
 
-    Returns the object tree. Raises :class:`ConfigError` (one-line message naming the key).
+    Returns the object tree (``TrainConfig``, ``EvalConfig``, ...). Raises :class:`ConfigError` (one-line
+    message naming the key).
     """
     from findview_baselines.config import typed_config
 
     return typed_config(cfg)
+
+
+def _torch_threads(typed: Any) -> int | None:
+    """The CPU thread count a tool's config asks for (``torch_threads`` or ``trainer.torch_threads``; null:
+    findview's policy)."""
+    from findview_baselines.config import EvalConfig, TrainConfig
+
+    if isinstance(typed, TrainConfig):
+        return typed.trainer.torch_threads
+    if isinstance(typed, EvalConfig):
+        return typed.torch_threads
+    return None
 
 
 def _fail(tool: str, message: str, status: int = 2) -> NoReturn:
@@ -181,7 +192,7 @@ def _precheck_run_dir(tool: str, cfg: DictConfig, multirun: bool = False) -> Non
 
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     try:
-        run_dir = Path(str(OmegaConf.select(cfg, key, throw_on_missing=True)))
+        run_dir = Path(str(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir))
     except Exception:
         return  # a name Hydra only knows at run time: left to the run
     holder = lock_holder(run_dir) if not multirun and run_dir.is_dir() else None
@@ -219,7 +230,7 @@ def _remove_if_empty_run(run_dir: Path) -> None:
 
 def run_tool(
     config_name: str,
-    main: Callable[[DictConfig, ToolContext], Any],
+    main: Callable[[Any, ToolContext], Any],
     tool: str | None = None,
     check_run_dir: bool = True,
     implied: Callable[[list[str]], list[str]] | None = None,
@@ -228,7 +239,7 @@ def run_tool(
 
     Args:
         config_name: the primary config.
-        main: ``main(cfg, ctx)``, called per job.
+        main: ``main(typed, ctx)``, called per job with the validated object tree of the job's config.
         tool: the name in messages (default ``config_name``).
         check_run_dir: refuse a run / sweep folder that cannot be written before anything runs (one line,
             exit 2); ``False`` where another process owns the folder (torchrun ranks > 0).
@@ -253,12 +264,10 @@ def run_tool(
     def _app(cfg: DictConfig) -> None:
         hc = HydraConfig.get()
         ctx = ToolContext(Path(hc.runtime.output_dir), dict(hc.runtime.choices), list(hc.overrides.task))
-        threads = OmegaConf.select(cfg, "torch_threads", default=None)
-        if threads is None:
-            threads = OmegaConf.select(cfg, "trainer.torch_threads", default=None)
-        configure_threads(threads)
         try:
-            main(cfg, ctx)
+            typed = validate_config(cfg)  # checked before Hydra started: the objects main works on
+            configure_threads(_torch_threads(typed))
+            main(typed, ctx)
         except Interrupted as err:
             print(f"{tool}: {err}", file=sys.stderr, flush=True)
             sys.exit(128 + err.signum)

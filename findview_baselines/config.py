@@ -175,12 +175,24 @@ class RotationAgentConfig:
     """The search detects keypoints on views downsampled by this factor (1: full size)."""
     max_arrivals: int = 6
     """Arrivals that still ask for moves before the candidate is decided where it is."""
-    verify_thresh: float = 0.6
-    """Colour ZNCC of view and target (downsampled, blurred) needed to stop, in [-1, 1]."""
-    verify_chroma: float = 0.2
-    """Largest difference of the mean chromaticity r / (r + g + b) (any channel) to stop."""
+    verify_thresh: float = 0.3
+    """Correlation of the locally contrast-normalised gray view and target (1/4 size) needed to stop, in [-1, 1]."""
+    verify_thresh_geo: float = 0.1
+    """... or this much when the estimate at the view puts the target there with verify_inliers inliers."""
+    verify_inliers: int = 12
+    """Inliers of an estimate rounding to (0, 0) for the lower threshold verify_thresh_geo."""
+    verify_chroma: float = 1.0
+    """Largest difference of the mean chromaticity r / (r + g + b) (any channel) to stop (1: off; fog greys colours, verify_hue covers hue)."""
+    verify_hue: float = 64.0
+    """Largest distance of the mean opponent colours (R - G, G - B), after the best gain in [0.2, 4], to stop (grey levels)."""
+    verify_colour: float = 0.35
+    """Colour correlation of the high-passed view and target (1/4 size) that makes the colours match, in [-1, 1]."""
+    verify_opponent: float = 0.8
+    """... or this correlation of their high-passed colour differences (R - G, G - B), which fog and contrast only scale; with the estimate's verify_inliers it also stands in for the structure score."""
+    lcn_sigma: Optional[float] = 4.0
+    """Local contrast normalisation window before keypoint detection, pixels (null: detect on raw gray)."""
     refine: bool = True
-    """Hill-climb the colour score over one-degree neighbours when a verified candidate is not exact."""
+    """Hill-climb the structure score over one-degree neighbours whenever a verified stop is not byte-identical to the target."""
     reject_radius: int = 3
     """Estimates within this many degrees (each axis) of a rejected candidate are ignored."""
     threads: int = 2
@@ -593,9 +605,14 @@ def typed_config(cfg: Any) -> Any:
 
     if not isinstance(cfg, DictConfig):
         return cfg
-    plain = OmegaConf.masked_copy(cfg, [k for k in cfg.keys() if k != "hydra"]) if "hydra" in cfg else cfg
+    if "hydra" in cfg:
+        from omegaconf import open_dict
+
+        cfg = cfg.copy()  # dropped from a copy: the primary schema (the type of the tree's root) stays
+        with open_dict(cfg):
+            del cfg["hydra"]
     try:
-        return OmegaConf.to_object(plain)
+        return OmegaConf.to_object(cfg)
     except ConfigError:
         raise
     except Exception as err:  # an interpolation or conversion problem: name the key

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from findview import task
 from findview.episode import Episode
 from findview.geometry import l1_distance, wrap_yaw
 from findview.imageio import load_panorama
-from findview_baselines.agents import agent_names, make_agent
+from findview_baselines.agents import agent_names, default_agent_config, make_agent
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, host_images, rgb_to_gray
 from findview_baselines.agents.feature_matching import (
     FeatureMatchingAgent,
@@ -101,9 +102,14 @@ class TinyEnv:
         return int(l1_distance(self.pitch, self.yaw, self.ep.target_pitch, self.ep.target_yaw))
 
 
+def agent_cfg(name: str, **values):
+    """The typed config of agent ``name``: the schema's defaults with ``values``."""
+    return dataclasses.replace(default_agent_config(name), **values)
+
+
 def simulate_oracle_episode(e: Episode, order: str = "pitch_first", pitch_bound: int = 60) -> tuple[int, int, int, int]:
     """Run the oracle with the task rules (no rendering); returns (final pitch, yaw, steps, last action)."""
-    agent = make_agent("oracle", {"order": order, "pitch_bound": pitch_bound}, 1, "cpu", 0)
+    agent = make_agent("oracle", agent_cfg("oracle", order=order, pitch_bound=pitch_bound), 1, "cpu", 0)
     agent.reset([0], [e])
     dummy = torch.zeros(1, 3, 4, 4, dtype=torch.uint8)
     pitch, yaw, steps = e.init_pitch, e.init_yaw, 0
@@ -124,27 +130,28 @@ def test_registry_names_and_errors():
     assert {"random", "oracle", "orb", "sift", "rotation"} <= set(agent_names())
     with pytest.raises(ValueError, match="valid agents: .*oracle.*orb.*random.*rotation.*sift"):
         make_agent("nope", None, 1, "cpu", 0)
-    with pytest.raises(ValueError, match="unknown config keys \\['d_tresh'\\]"):
-        make_agent("orb", {"d_tresh": 50}, 1, "cpu", 0)
-    with pytest.raises(ValueError, match="detector"):
-        make_agent("orb", {"detector": "sift"}, 1, "cpu", 0)
-    a = make_agent("sift", {"name": "sift", "d_thresh": 50}, 2, "cpu", 0)
+    with pytest.raises(TypeError, match="d_tresh"):  # the schema knows its keys
+        agent_cfg("orb", d_tresh=50)
+    with pytest.raises(ValueError, match="the config given is for agent 'sift'"):
+        make_agent("orb", agent_cfg("sift"), 1, "cpu", 0)
+    a = make_agent("sift", agent_cfg("sift", d_thresh=50), 2, "cpu", 0)
     assert isinstance(a, FeatureMatchingAgent) and a.detector == "sift"
     assert a.d_thresh["hard"] == 50.0
 
 
 def test_agent_yaml_configs(repo_root: Path):
-    from omegaconf import OmegaConf
+    from findview_baselines.cli import compose_config, validate_config
 
     for name in ("random", "oracle", "orb", "sift", "rotation"):
-        cfg = OmegaConf.load(repo_root / "configs" / "agent" / f"{name}.yaml")
+        cfg = validate_config(compose_config("eval", [f"agent={name}", "sim=fov60", "task.pitch_bound=45"])).agent
         assert cfg.name == name
-        cfg.pop("defaults", None)  # a Hydra directive (the schema the file extends), not an agent key
         agent = make_agent(name, cfg, 2, "cpu", 0)
         if name in ("orb", "sift"):
             assert agent.d_thresh == {"easy": math.inf, "medium": math.inf, "hard": math.inf, "default": math.inf}
+        if name == "oracle":
+            assert agent.pitch_bound == 45  # the task's clamp
         if name == "rotation":
-            assert agent.fov == 90.0  # oc.select falls back without a sim node
+            assert agent.fov == 60.0  # the rendered views' FoV
 
 
 def test_parse_d_thresh():
@@ -326,7 +333,7 @@ def test_feature_agent_flat_image_repeats_previous(panos, kind):
 def test_d_thresh_per_difficulty_drops_votes(panos):
     views = render(panos[PANOS[0]], [(5, 30), (5, 35)])
     # d_thresh 0 on hard keeps no match (distances > 0) -> repeat the previous action
-    agent = make_agent("orb", {"d_thresh": {"easy": "inf", "hard": 0}}, 1, "cpu", 0)
+    agent = make_agent("orb", agent_cfg("orb", d_thresh={"easy": math.inf, "hard": 0}), 1, "cpu", 0)
     agent.reset([0], [ep(difficulty="hard")])
     agent.states[0].prev = DOWN
     assert int(agent.act(obs_of(views[:1], views[1:]))[0]) == DOWN
@@ -530,7 +537,7 @@ def test_rotation_agent_far_target_and_the_pitch_bound(sun360_mini_files):
     size = 128  # small views keep the test fast; keypoints at full size
     sim = sim_mod.Simulator(bank, FOV, size, size, pitch_bound=60)
     env = task.FindViewEnv(sim, task.StaticEpisodeSource([e]), 1, max_steps=5000, pitch_bound=60, prefetch=0)
-    agent = make_agent("rotation", {"search_scale": 1.0}, 1, "cpu", 0)
+    agent = make_agent("rotation", agent_cfg("rotation", search_scale=1.0), 1, "cpu", 0)
     spacing = agent.row_spacing(size, size)
     bound = 4 * 360 + 2 * 120 + spacing  # four rows and the moves between them
     obs = env.reset()
@@ -572,7 +579,7 @@ def _env_run(agent_name: str, episodes: list[Episode], num_envs: int, max_steps:
     cfg = dict(cfg or {})
     if agent_name in ("oracle", "rotation"):
         cfg["pitch_bound"] = ENV_PITCH_BOUND
-    agent = make_agent(agent_name, cfg, num_envs, "cpu", 0)
+    agent = make_agent(agent_name, agent_cfg(agent_name, **cfg), num_envs, "cpu", 0)
     obs = env.reset()
     started = [i for i in range(num_envs) if env.episodes[i] is not None]
     agent.reset(started, [env.episodes[i] for i in started])

@@ -141,28 +141,21 @@ def test_every_schema_field_has_a_docstring() -> None:
     assert not missing, f"fields without a docstring: {missing}"
 
 
-class StrictSection(dict):
-    """A config section that fails on any key its schema does not define."""
-
-    def __init__(self, schema: type, **values) -> None:
-        super().__init__(values)
-        self.allowed = {f.name for f in dataclasses.fields(schema)}
-
-    def get(self, key, default=None):  # type: ignore[override]
-        assert key in self.allowed, f"the code reads {key!r}, which {sorted(self.allowed)} does not define"
-        return super().get(key, default)
-
-
-def test_the_builders_read_only_schema_keys(tmp_path: Path) -> None:
-    """findview.build (used by train, eval, render, benchmarks and tests) reads sim / task keys that exist."""
+def test_the_builders_take_the_typed_sections(tmp_path: Path) -> None:
+    """findview.build (used by train, eval, render, benchmarks and tests) reads the attributes of the typed
+    sections (a key the schema does not define would be an AttributeError); mappings are converted once at the
+    caller with as_section."""
     import numpy as np
 
     from findview.build import build_env, build_simulator
     from findview.task import StaticEpisodeSource
 
-    sim_cfg = StrictSection(core_config.SimConfig, fov=90.0, height=16, width=16, device="cpu", prefetch_workers=0)
-    task_cfg = StrictSection(core_config.TaskConfig, max_steps=50)
+    sim_cfg = core_config.SimConfig(fov=90.0, height=16, width=16, device="cpu", prefetch_workers=0)
+    task_cfg = core_config.as_section({"max_steps": 50}, core_config.TaskConfig)
     sim = build_simulator(sim_cfg, 60, [], 1)
     env = build_env(sim, StaticEpisodeSource([]), 1, task_cfg)
     assert (sim.height, sim.width, env.max_steps, env.pitch_bound) == (16, 16, 50, 60)
     assert np.isfinite(sim.fov)
+    assert core_config.as_section(sim_cfg, core_config.SimConfig) is sim_cfg
+    with pytest.raises(Exception, match="no_such_key"):
+        core_config.as_section({"no_such_key": 1}, core_config.SimConfig)

@@ -8,11 +8,12 @@ import pytest
 import torch
 
 from findview.build import build_simulator, build_static_env
+from findview.config import CorruptionConfig, SimConfig, TaskConfig, as_section
 from findview.episode import Episode
 from findview.task.target_corruption import EpisodeCorruption
 
-SIM = {"fov": 90, "height": 32, "width": 32, "device": "cpu", "prefetch_workers": 0}
-TASK = {"max_steps": 20, "pitch_bound": 60}
+SIM = SimConfig(fov=90, height=32, width=32, device="cpu", prefetch_workers=0)
+TASK = TaskConfig(max_steps=20)
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,8 @@ def episodes(tmp_path_factory) -> list[Episode]:
 def _targets(episodes, num_envs, corruption):
     """The targets each episode starts with, in episode order, for ``num_envs`` parallel slots."""
     sim = build_simulator(SIM, 60, [e.image for e in episodes], num_envs)
-    env = build_static_env(SIM, TASK, episodes, num_envs, corruption_cfg=corruption, simulator=sim)
+    env = build_static_env(SIM, TASK, episodes, num_envs, simulator=sim,
+                           corruption_cfg=None if corruption is None else as_section(corruption, CorruptionConfig))
     out, views, records = {}, {}, []
     env.reset()
     while bool(env.active.any()):

@@ -10,7 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
 from findview.dataset import (
     DIFFICULTIES,
@@ -25,13 +24,11 @@ from findview.dataset import (
     discover_folder,
     discover_indoor360,
     discover_sun360,
-    ensure_dataset,
     episode_file,
     load_episodes,
     load_split,
     make_static_episodes,
     pitch_distribution,
-    prepare_dataset,
     sample_pitch,
     sample_rotations,
     satisfies,
@@ -40,6 +37,22 @@ from findview.dataset import (
     write_episode_file,
     write_splits,
 )
+
+
+def prepare_dataset(cfg, *args, **kwargs):
+    """:func:`findview.dataset.prepare_dataset` of a mapping (converted once, like any caller outside the tools)."""
+    from findview.config import DatasetConfig, as_section
+    from findview.dataset import prepare_dataset as prepare
+
+    return prepare(as_section(cfg, DatasetConfig), *args, **kwargs)
+
+
+def ensure_dataset(cfg, *args, **kwargs):
+    """:func:`findview.dataset.ensure_dataset` of a mapping (converted once with as_section)."""
+    from findview.config import DatasetConfig, as_section
+    from findview.dataset import ensure_dataset as ensure
+
+    return ensure(as_section(cfg, DatasetConfig), *args, **kwargs)
 from findview.dataset.splits import normalize_ratios, split_counts
 from findview.geometry import yaw_diff
 from findview.imageio import PanoramaError, load_panorama
@@ -578,32 +591,33 @@ def test_static_episodes_depend_on_the_dataset_only(tmp_path: Path) -> None:
     assert json.loads(files[2].read_text())["pitch_bound"] == 20
     ensure_dataset({**cfg, "episode_pitch_bound": 20, "episode_max_steps": 100}, [90], pitch_bound=20,
                    progress=False)
-    for key, value in (("episode_pitch_bound", 91), ("episode_max_steps", 11), ("episode_max_steps", "many")):
+    for key, value in (("episode_pitch_bound", 91), ("episode_max_steps", 11)):
         with pytest.raises(DatasetError, match=f"dataset.{key}"):
             ensure_dataset({**cfg, key: value}, [90], progress=False)
+    from omegaconf.errors import ValidationError
+
+    with pytest.raises(ValidationError, match="episode_max_steps"):  # a type the schema refuses
+        ensure_dataset({**cfg, "episode_max_steps": "many"}, [90], progress=False)
 
 
 def test_config_files(tmp_path: Path) -> None:
-    required = {"name", "kind", "root", "subset", "out_dir", "split", "split_seed", "episodes_per_image",
-                "episode_seed", "episode_fovs", "episode_pitch_bound", "episode_max_steps", "hard_rule",
-                "splits_to_make"}
+    from findview_baselines.cli import compose_config, validate_config
+
     names = {p.stem for p in (REPO / "configs" / "dataset").glob("*.yaml")}
     assert {"synthetic", "sun360_indoor", "sun360_outdoor", "indoor360", "folder"} <= names
     for name in names:
-        cfg = OmegaConf.load(REPO / "configs" / "dataset" / f"{name}.yaml")
-        assert required <= set(cfg.keys()), name
+        cfg = validate_config(compose_config("make_dataset", [f"dataset={name}"])).dataset
         assert cfg.out_dir == f"data/{cfg.name}" and cfg.hard_rule == "or" and cfg.episodes_per_image == 1
         assert cfg.episode_pitch_bound == 60 and cfg.episode_max_steps == 5000  # the benchmark's T and bound
     # the folder config, used as a node: root / out_dir overrides and ensure_dataset
     root, out = tmp_path / "imgs", tmp_path / "out"
     _toy_folder(root)
-    cfg = OmegaConf.load(REPO / "configs" / "dataset" / "folder.yaml")
-    cfg.root, cfg.out_dir, cfg.split = str(root), str(out), [0, 0, 1]
+    cfg = compose_config("make_dataset", ["dataset=folder", f"dataset.root={root}", f"dataset.out_dir={out}",
+                                          "dataset.split=[0,0,1]"]).dataset
     assert ensure_dataset(cfg, [90], progress=False) == out
     assert len(load_split(out, "test")) == 10 and load_split(out, "train") == []
     assert len(load_episodes(episode_file(out, "test", 90))) == 30
-    cfg = OmegaConf.load(REPO / "configs" / "dataset" / "sun360_indoor.yaml")
-    cfg.root = None
+    cfg = validate_config(compose_config("make_dataset", ["dataset=sun360_indoor", "dataset.root=null"])).dataset
     with pytest.raises(DatasetError, match=r"dataset.root is not set.*dataset.root="):
         ensure_dataset(cfg, [90], progress=False)
 

@@ -185,6 +185,13 @@ def test_unknown_agent_lists_valid_names(tmp_path):
         assert name in err
 
 
+def _eval_cfg(*overrides: str):
+    """The validated eval config of ``overrides`` (like the tool composes it)."""
+    from findview_baselines.cli import compose_config, validate_config
+
+    return validate_config(compose_config("eval", list(overrides)))
+
+
 def test_difficulty_filter():
     from findview.episode import Episode
     from findview_baselines.evaluation.evaluate import EvalError, filter_episodes
@@ -198,15 +205,16 @@ def test_difficulty_filter():
 
 
 def test_unknown_agent_name_in_config_lists_registered_agents(folder_ds, tmp_path):
-    from findview_baselines.evaluation.evaluate import EvalError, build_agent
-    from omegaconf import OmegaConf
+    from dataclasses import replace
 
-    cfg = OmegaConf.create({"agent": {"name": "no_such_agent"}, "seed": 0})
+    from findview_baselines.config import RandomAgentConfig
+    from findview_baselines.evaluation.evaluate import EvalError, build_agent
+
+    cfg = replace(_eval_cfg(), agent=RandomAgentConfig(name="no_such_agent"))
     with pytest.raises(EvalError, match=r"valid agents: .*oracle.*random"):
         build_agent(cfg, 2, torch.device("cpu"))
-    cfg = OmegaConf.create({"agent": {"name": "ppo"}, "seed": 0, "checkpoint": None})
     with pytest.raises(EvalError, match="checkpoint="):
-        build_agent(cfg, 2, torch.device("cpu"))
+        build_agent(_eval_cfg("agent=ppo"), 2, torch.device("cpu"))
 
 
 def test_ctrl_c_writes_nothing(folder_ds, tmp_path):
@@ -328,10 +336,12 @@ def _env(episodes, num_envs, max_steps=5000):
     is shared by every test env."""
     from findview.build import build_simulator, build_static_env
 
-    sim_cfg = {"fov": 90, "height": 64, "width": 64, "device": "cpu", "bank_mb": 64, "prefetch_workers": 0}
+    from findview.config import SimConfig, TaskConfig
+
+    sim_cfg = SimConfig(fov=90, height=64, width=64, device="cpu", bank_mb=64, prefetch_workers=0)
     if not _SIM:
         _SIM.append(build_simulator(sim_cfg, 60, [e.image for e in episodes], 8))
-    return build_static_env(sim_cfg, {"max_steps": max_steps, "pitch_bound": 60}, episodes, num_envs, simulator=_SIM[0])
+    return build_static_env(sim_cfg, TaskConfig(max_steps=max_steps), episodes, num_envs, simulator=_SIM[0])
 
 
 def test_harness_counts_and_batch_invariance(folder_ds):
@@ -342,14 +352,14 @@ def test_harness_counts_and_batch_invariance(folder_ds):
     out = {}
     for n in (1, 4):
         env = _env(episodes, n)
-        records, rt = run_episodes(env, make_agent("oracle", {}, n), progress=False)
+        records, rt = run_episodes(env, make_agent("oracle", None, n), progress=False)
         out[n] = records
         assert [r["episode_id"] for r in records] == [e.episode_id for e in episodes]
         assert rt.agent_decisions == rt.env_steps == sum(r["steps"] for r in records)
         assert rt.episodes == len(episodes) and rt.agent_fps > 0 and rt.env_fps > 0
     assert out[1] == out[4]
     env = _env(episodes, 4)
-    records, rt = run_episodes(env, make_agent("oracle", {}, 4), progress=False, max_episodes=5)
+    records, rt = run_episodes(env, make_agent("oracle", None, 4), progress=False, max_episodes=5)
     assert [r["episode_id"] for r in records] == [e.episode_id for e in episodes[:5]]
 
 
@@ -433,18 +443,14 @@ def test_eval_tool_with_checkpoint(folder_ds, tiny_ckpt, tmp_path):
     assert json.loads((out / "run.json").read_text())["agent"] == "ppo"
 
     # a checkpoint trained on another view size: the message says which sizes
-    from omegaconf import OmegaConf
-
     from findview_baselines.evaluation.evaluate import EvalError, build_agent
 
-    cfg = OmegaConf.create({"agent": {"name": "ppo"}, "checkpoint": str(ckpt), "seed": 0, "sim": {"height": 256, "width": 256}})
+    cfg = _eval_cfg("agent=ppo", f"checkpoint={ckpt}", "sim.height=256", "sim.width=256")
     with pytest.raises(EvalError, match=r"64x64.*sim.height=256"):
         build_agent(cfg, 2, torch.device("cpu"))
 
 
 def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_line(tiny_ckpt, tmp_path):
-    from omegaconf import OmegaConf
-
     from findview_baselines.evaluation.evaluate import apply_checkpoint_config, build_agent
 
     state = torch.load(tiny_ckpt, weights_only=True)
@@ -453,17 +459,15 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     torch.save(state, ckpt)
 
     def agent_for(path: Path, overrides: list[str], penalty: float | None):
-        agent_cfg = {"name": "ppo"} if penalty is None else {"name": "ppo", "revisit_penalty": penalty}
-        cfg = OmegaConf.create({"agent": agent_cfg, "checkpoint": str(path), "seed": 0,
-                                "sim": {"height": 256, "width": 256, "fov": 90.0}})
-        apply_checkpoint_config(cfg, overrides)
+        given = [] if penalty is None else [f"agent.revisit_penalty={penalty}"]
+        cfg = _eval_cfg("agent=ppo", f"checkpoint={path}", *given)
+        cfg = apply_checkpoint_config(cfg, overrides)
         return build_agent(cfg, 2, torch.device("cpu"))[0]
 
     assert agent_for(ckpt, [], None).revisits.penalty == 1.5  # the training run's setting
     assert agent_for(ckpt, [], None).revisits.row_stride == 30
-    cfg = OmegaConf.create({"agent": {"name": "ppo", "revisit_row_stride": 45}, "checkpoint": str(ckpt), "seed": 0,
-                            "sim": {"height": 256, "width": 256, "fov": 90.0}})
-    apply_checkpoint_config(cfg, ["agent.revisit_row_stride=45"])
+    cfg = _eval_cfg("agent=ppo", f"checkpoint={ckpt}", "agent.revisit_row_stride=45")
+    cfg = apply_checkpoint_config(cfg, ["agent.revisit_row_stride=45"])
     assert build_agent(cfg, 2, torch.device("cpu"))[0].revisits.row_stride == 45  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off

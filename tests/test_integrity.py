@@ -32,6 +32,22 @@ def one_error_line(proc: subprocess.CompletedProcess, tool: str) -> str:
     return lines[0]
 
 
+def prepare_dataset(cfg, *args, **kwargs):
+    """:func:`findview.dataset.prepare_dataset` of a mapping (converted once, like any caller outside the tools)."""
+    from findview.config import DatasetConfig, as_section
+    from findview.dataset import prepare_dataset as prepare
+
+    return prepare(as_section(cfg, DatasetConfig), *args, **kwargs)
+
+
+def ensure_dataset(cfg, *args, **kwargs):
+    """:func:`findview.dataset.ensure_dataset` of a mapping (converted once with as_section)."""
+    from findview.config import DatasetConfig, as_section
+    from findview.dataset import ensure_dataset as ensure
+
+    return ensure(as_section(cfg, DatasetConfig), *args, **kwargs)
+
+
 def synthetic_cfg(base: Path, out: str, k: int) -> dict:
     return {"name": "synthetic", "kind": "synthetic", "root": str(base / "images"), "out_dir": str(base / out),
             "num_images": 4, "width": 256, "split": [0, 0, 1], "episodes_per_image": k, "episode_fovs": [90],
@@ -46,8 +62,6 @@ def overrides(cfg: dict) -> list[str]:
 @pytest.fixture(scope="module")
 def k3(tmp_path_factory) -> dict:
     """A synthetic data set (4 images, all test) made with 3 episodes per image per difficulty."""
-    from findview.dataset import prepare_dataset
-
     base = tmp_path_factory.mktemp("integrity")
     cfg = synthetic_cfg(base, "k3", 3)
     prepare_dataset(cfg, [90], progress=False)
@@ -60,7 +74,7 @@ def k3(tmp_path_factory) -> dict:
 
 
 def test_first_k_episodes_of_a_bigger_file_are_the_file_made_with_k(k3, tmp_path):
-    from findview.dataset import DatasetError, ensure_dataset, episode_file, load_episodes, prepare_dataset
+    from findview.dataset import DatasetError, episode_file, load_episodes
 
     big = episode_file(k3["out_dir"], "test", 90)
     for k in (1, 2):
@@ -147,8 +161,8 @@ def test_eval_refuses_synthetic_data_made_from_another_root(k3, tmp_path):
 
 def test_eval_refuses_sun360_data_made_from_another_root(sun360_mini, tmp_path):
     """The check eval (and the render tools) run before loading episodes (resolve_episodes), in-process."""
-    from findview.dataset import DatasetError, prepare_dataset
-    from findview_baselines.cli import compose_config
+    from findview.dataset import DatasetError
+    from findview_baselines.cli import compose_config, validate_config
     from findview_baselines.evaluation.evaluate import resolve_episodes
 
     cfg = {"name": "sun360_indoor", "kind": "sun360", "root": str(sun360_mini), "subset": "indoor",
@@ -156,11 +170,12 @@ def test_eval_refuses_sun360_data_made_from_another_root(sun360_mini, tmp_path):
            "validate": False}
     prepare_dataset(cfg, [90], progress=False)
     args = ["dataset=sun360_indoor", f"dataset.out_dir={cfg['out_dir']}", "dataset.split=[0,0,1]", "progress=false"]
-    episodes, _, _ = resolve_episodes(compose_config("eval", [*args, f"dataset.root={sun360_mini}"]), "sun360_indoor")
+    episodes, _, _ = resolve_episodes(validate_config(compose_config("eval", [*args, f"dataset.root={sun360_mini}"])),
+                                      "sun360_indoor")
     assert len(episodes) > 0
     wrong = tmp_path / "SUN360"
     with pytest.raises(DatasetError) as info:
-        resolve_episodes(compose_config("eval", [*args, f"dataset.root={wrong}"]), "sun360_indoor")
+        resolve_episodes(validate_config(compose_config("eval", [*args, f"dataset.root={wrong}"])), "sun360_indoor")
     line = str(info.value)
     assert "\n" not in line and f"root '{sun360_mini}' in the file, '{wrong}' now" in line
     assert f"python tools/make_dataset.py dataset=sun360_indoor dataset.root={wrong}" in line

@@ -102,8 +102,10 @@ def test_ppo_learns_to_find_the_view(tmp_path: Path) -> None:
     def make_env() -> FindViewEnv:
         from findview.build import build_static_env
 
-        sim_cfg = {"fov": 90, "height": SIZE, "width": SIZE, "device": "cpu", "prefetch_workers": 0}
-        return build_static_env(sim_cfg, cfg.task, episodes, 16, max_steps=MAX_STEPS)
+        from findview.config import SimConfig, TaskConfig, as_section
+
+        sim_cfg = SimConfig(fov=90, height=SIZE, width=SIZE, device="cpu", prefetch_workers=0)
+        return build_static_env(sim_cfg, as_section(cfg.task, TaskConfig), episodes, 16, max_steps=MAX_STEPS)
 
     policy = build_policy(cfg.agent, SIZE, SIZE)
     load_policy(result.latest, policy)

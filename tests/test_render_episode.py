@@ -47,11 +47,12 @@ def one_image_ds(tmp_path_factory, small_pano) -> dict[str, Path]:
     root, out_dir = base / "images", base / "data"
     (root / "room").mkdir(parents=True)
     (root / "room" / "pano.jpg").write_bytes(small_pano.read_bytes())
+    from findview.config import DatasetConfig
     from findview.dataset import prepare_dataset
 
     prepare_dataset(
-        {"name": "one", "kind": "folder", "root": str(root), "out_dir": str(out_dir), "split": [0, 0, 1],
-         "episode_fovs": [90], "splits_to_make": ["test"]},
+        DatasetConfig(**{"name": "one", "kind": "folder", "root": str(root), "out_dir": str(out_dir), "split": [0, 0, 1],
+         "episode_fovs": [90], "splits_to_make": ["test"]}),
         [90], progress=False,
     )
     return {"root": root, "out": out_dir}

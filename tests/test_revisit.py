@@ -1,4 +1,4 @@
-"""The learned agents' search memory (findview_baselines/agents/revisit.py), against hand-worked walks."""
+"""The learned agents' search memory (findview_baselines/rl/search_memory.py), against hand-worked walks."""
 
 from __future__ import annotations
 

@@ -21,12 +21,12 @@ with status 2.
 
 from __future__ import annotations
 
-from omegaconf import DictConfig
-
 from findview_baselines.cli import ToolContext, run_tool
+from findview_baselines.config import EvalConfig
 
 
-def main(cfg: DictConfig, ctx: ToolContext) -> None:
+def main(cfg: EvalConfig, ctx: ToolContext) -> None:
+    """Evaluate the validated config's agent into the run folder and print the result table."""
     from findview_baselines.evaluation.evaluate import evaluate
 
     evaluate(cfg, ctx.run_dir, choices=ctx.choices, overrides=ctx.overrides)

@@ -17,12 +17,12 @@ difficulty...) end the run with a one-line ``make_dataset: error: ...`` on stder
 
 from __future__ import annotations
 
-from omegaconf import DictConfig
-
 from findview_baselines.cli import ToolContext, UserError, run_tool
+from findview_baselines.config import MakeDatasetConfig
 
 
-def main(cfg: DictConfig, ctx: ToolContext) -> None:
+def main(cfg: MakeDatasetConfig, ctx: ToolContext) -> None:
+    """Make (or reuse) the splits and episode files of ``cfg.dataset`` and print what was made."""
     from findview.dataset import SamplingError, prepare_dataset
 
     fovs = [float(f) for f in cfg.dataset.episode_fovs]
@@ -30,7 +30,7 @@ def main(cfg: DictConfig, ctx: ToolContext) -> None:
         fovs.append(float(cfg.sim.fov))
     try:
         summary = prepare_dataset(
-            cfg.dataset, fovs, force=bool(cfg.force), progress=bool(cfg.progress), log=lambda msg: print(msg, flush=True)
+            cfg.dataset, fovs, force=cfg.force, progress=cfg.progress, log=lambda msg: print(msg, flush=True)
         )
     except (SamplingError, OSError) as err:
         raise UserError(str(err)) from err

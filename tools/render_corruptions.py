@@ -20,9 +20,9 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
 
 from findview_baselines.cli import ToolContext, run_tool
+from findview_baselines.config import RenderCorruptionsConfig
 
 log = logging.getLogger("findview.render_corruptions")
 
@@ -74,8 +74,10 @@ def corruption_grid(view: np.ndarray, severity: int, seed: int = 0, labels: bool
     return grid
 
 
-def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
-    """Render the target view, corrupt it 16 ways and write the grid; returns the PNG path."""
+def render(cfg: RenderCorruptionsConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
+    """Render the target view, corrupt it 16 ways and write the grid; returns the PNG path (a composed
+    ``DictConfig`` is validated first)."""
+    from findview_baselines.config import typed_config
 
     from findview.geometry import wrap_yaw
     from findview.imageio import load_panorama
@@ -83,21 +85,22 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     from findview_baselines.rl.checkpoint import check_writable
     from findview_baselines.evaluation.viz import parse_rotation, render_views, write_png
 
-    severity = int(cfg.severity)
-    if cfg.get("image") is not None or cfg.get("target") is not None:
-        if cfg.get("image") is None or cfg.get("target") is None:
+    cfg = typed_config(cfg)
+    severity = cfg.severity
+    if cfg.image is not None or cfg.target is not None:
+        if cfg.image is None or cfg.target is None:
             raise EvalError("explicit mode needs both image= and target=")
         image = str(Path(str(cfg.image)).expanduser())
         target = parse_rotation(cfg.target, "target")
         name = Path(image).stem
     else:
         episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides, logger=log)
-        k = int(cfg.episode_index)
+        k = cfg.episode_index
         if not 0 <= k < len(episodes):
             raise EvalError(f"episode_index={k} is out of range: {path} holds {len(episodes)} episodes")
         ep = episodes[k]
         image, target, name = ep.image, (ep.target_pitch, ep.target_yaw), ep.episode_id
-    bound = int(cfg.task.pitch_bound)
+    bound = cfg.task.pitch_bound
     if abs(target[0]) > bound:
         raise EvalError(f"target pitch {target[0]} is outside [-{bound}, {bound}] (task.pitch_bound)")
     target = (target[0], int(wrap_yaw(target[1])))
@@ -106,12 +109,12 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     except OSError as err:  # PanoramaError (a bad image) is a user error of its own
         raise EvalError(f"{image}: {err.strerror or err}") from err
     sim = cfg.sim
-    view = render_views(pano, [target], float(sim.fov), int(sim.height), int(sim.width), str(sim.mode))[0]
-    grid = corruption_grid(view, severity, int(cfg.seed))
-    out = Path(str(cfg.out)).expanduser() if cfg.get("out") else run_dir / f"corruptions_s{severity}.png"
+    view = render_views(pano, [target], float(sim.fov), sim.height, sim.width, sim.mode)[0]
+    grid = corruption_grid(view, severity, cfg.seed)
+    out = Path(cfg.out).expanduser() if cfg.out else run_dir / f"corruptions_s{severity}.png"
     if out.suffix.lower() != ".png":
         raise EvalError(f"out= must name a .png file, got {out}")
-    check_writable(out.parent, "output folder of out=" if cfg.get("out") else "run folder (hydra.run.dir)")
+    check_writable(out.parent, "output folder of out=" if cfg.out else "run folder (hydra.run.dir)")
 
     write_png(out, grid)
     log.info("%s: target %s under 16 corruptions at severity %d -> %s (%dx%d)", name, target, severity, out,
@@ -119,7 +122,8 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     return out
 
 
-def main(cfg: DictConfig, ctx: ToolContext) -> None:
+def main(cfg: RenderCorruptionsConfig, ctx: ToolContext) -> None:
+    """Draw the corruption grid and print the PNG path."""
     print(render(cfg, ctx.run_dir, ctx.choices, ctx.overrides))
 
 

@@ -19,15 +19,16 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from omegaconf import DictConfig
-
 from findview_baselines.cli import ToolContext, run_tool
+from findview_baselines.config import RenderEpisodeConfig
 
 log = logging.getLogger("findview.render_episode")
 
 
-def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
-    """Make the picture; returns the PNG path."""
+def render(cfg: RenderEpisodeConfig, run_dir: Path, choices: dict, overrides: list[str]) -> Path:
+    """Make the picture of the validated config; returns the PNG path (a composed ``DictConfig`` is validated
+    first)."""
+    from findview_baselines.config import typed_config
 
     from findview.imageio import load_panorama
     from findview.geometry import wrap_yaw
@@ -35,19 +36,20 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     from findview_baselines.rl.checkpoint import check_writable
     from findview_baselines.evaluation.viz import episode_figure, parse_rotation, write_png
 
-    fov, height, width = float(cfg.sim.fov), int(cfg.sim.height), int(cfg.sim.width)
-    pitch_bound = int(cfg.task.pitch_bound)
-    explicit = [k for k in ("image", "init", "target") if cfg.get(k) is not None]
-    if explicit:
-        missing = [k for k in ("image", "init", "target") if cfg.get(k) is None]
+    cfg = typed_config(cfg)
+    fov, height, width = float(cfg.sim.fov), cfg.sim.height, cfg.sim.width
+    pitch_bound = cfg.task.pitch_bound
+    explicit = {"image": cfg.image, "init": cfg.init, "target": cfg.target}
+    if any(v is not None for v in explicit.values()):
+        missing = [k for k, v in explicit.items() if v is None]
         if missing:
             raise EvalError(f"explicit mode needs image=, init= and target=; missing: {', '.join(missing)}")
         image = str(Path(str(cfg.image)).expanduser())
         init, target = parse_rotation(cfg.init, "init"), parse_rotation(cfg.target, "target")
         name = Path(image).stem
     else:
-        episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides, logger=log)
-        k = int(cfg.episode_index)
+        episodes, path, _ = resolve_episodes(cfg, choices.get("dataset"), overrides, logger=log, episodes_file=cfg.episodes)
+        k = cfg.episode_index
         if not 0 <= k < len(episodes):
             raise EvalError(f"episode_index={k} is out of range: {path} holds {len(episodes)} episodes")
         ep = episodes[k]
@@ -62,20 +64,21 @@ def render(cfg: DictConfig, run_dir: Path, choices: dict, overrides: list[str]) 
     except OSError as err:  # PanoramaError (a bad image) is a user error of its own
         raise EvalError(f"{image}: {err.strerror or err}") from err
     fig = episode_figure(
-        pano, init, target, fov, height, width, str(cfg.sim.mode), cfg.get("pano_height"), bool(cfg.get("labels", True))
+        pano, init, target, fov, height, width, cfg.sim.mode, cfg.pano_height, cfg.labels
     )
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-    out = Path(str(cfg.out)).expanduser() if cfg.get("out") else run_dir / f"{safe}.png"
+    out = Path(cfg.out).expanduser() if cfg.out else run_dir / f"{safe}.png"
     if out.suffix.lower() != ".png":
         raise EvalError(f"out= must name a .png file, got {out}")
-    check_writable(out.parent, "output folder of out=" if cfg.get("out") else "run folder (hydra.run.dir)")
+    check_writable(out.parent, "output folder of out=" if cfg.out else "run folder (hydra.run.dir)")
 
     write_png(out, fig)
     log.info("episode %s: init %s, target %s -> %s (%dx%d)", name, init, target, out, fig.shape[1], fig.shape[0])
     return out
 
 
-def main(cfg: DictConfig, ctx: ToolContext) -> None:
+def main(cfg: RenderEpisodeConfig, ctx: ToolContext) -> None:
+    """Draw the episode and print the PNG path."""
     print(render(cfg, ctx.run_dir, ctx.choices, ctx.overrides))
 
 

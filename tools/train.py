@@ -26,14 +26,14 @@ import logging
 import os
 import sys
 
-from omegaconf import DictConfig
-
 from findview_baselines.cli import ToolContext, run_tool
+from findview_baselines.config import TrainConfig
 
 log = logging.getLogger("train")
 
 
-def main(cfg: DictConfig, ctx: ToolContext) -> None:
+def main(cfg: TrainConfig, ctx: ToolContext) -> None:
+    """Train (or resume) into the run folder; exit 1 when the training diverged."""
     from findview_baselines.training import TrainingDiverged, train
 
     try:

@@ -168,8 +168,8 @@ def read_episode_file(path: str | os.PathLike) -> dict[str, Any]:
     """The raw episode-file document (error naming the file and how to make it when missing)."""
     path = Path(path)
     hint = (
-        f"Make it with: python tools/make_dataset.py dataset=<name> [dataset.root=<folder>] "
-        f"(dataset.episode_fovs must include the FoV, dataset.splits_to_make the split)"
+        "Make it with: python tools/make_dataset.py dataset=<name> [dataset.root=<folder>] "
+        "(dataset.episode_fovs must include the FoV, dataset.splits_to_make the split)"
     )
     try:
         doc = read_json(path, "episode file", hint)

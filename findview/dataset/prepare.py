@@ -1,28 +1,11 @@
 """Build (or reuse) a data set's split file and static episode files from a ``dataset`` config.
 
 :func:`prepare_dataset` is what ``tools/make_dataset.py`` runs; :func:`ensure_dataset` is what train /
-eval call so that the quick start works on a fresh machine. The config keys (``configs/dataset/*.yaml``):
-
-======================== ==========================================================================
-``name``                 data set name (``splits.json`` ``dataset`` field); default: ``kind``
-``kind``                 ``sun360`` | ``indoor360`` | ``folder`` | ``synthetic``
-``root``                 image folder (relative paths resolve against the current directory)
-``subset``               sun360 only: ``indoor`` | ``outdoor`` | ``others`` | ``all``
-``out_dir``              where ``splits.json`` and ``episodes/`` go; default ``data/<name>``
-``split``                ``[train, val, test]`` ratios, default ``[0.8, 0.1, 0.1]``
-``split_seed``           split seed (default 0)
-``episodes_per_image``   K static episodes per image per difficulty (default 1)
-``episode_seed``         static episode seed (default 0)
-``episode_fovs``         FoVs (degrees) with episode files (default ``[90, 60]``)
-``episode_pitch_bound``  static episodes have pitches in ``[-b, b]`` degrees (default 60); a tool whose
-                         ``task.pitch_bound`` differs refuses the files (see :func:`ensure_dataset`)
-``episode_max_steps``    static episodes have ``10 < L1 < episode_max_steps`` steps (default 5000);
-                         independent of the ``task.max_steps`` a tool runs with
-``hard_rule``            ``or`` (default) | ``and``
-``splits_to_make``       splits with static episode files (default ``[val, test]``)
-``validate``             decode every image when (re)building the splits (default true)
-``num_images``, ``seed``, ``width``, ``labels``   synthetic only (see :mod:`findview.dataset.synthetic`)
-======================== ==========================================================================
+eval call so that the quick start works on a fresh machine. Both take the validated ``dataset`` section
+(:class:`findview.config.DatasetConfig`: every key, its unit and its default are documented there); the
+static episodes follow ``episode_seed``, ``episodes_per_image``, ``episode_fovs``, ``episode_pitch_bound``
+(a tool whose ``task.pitch_bound`` differs refuses the files, see :func:`ensure_dataset`),
+``episode_max_steps`` (independent of the ``task.max_steps`` a tool runs with) and ``hard_rule``.
 
 The static episode files are a function of the ``dataset`` config alone (never of the ``task`` settings
 of the tool that runs; docs/TASK.md, Datasets and splits).
@@ -40,21 +23,22 @@ the episodes of the file made with ``K`` (:mod:`findview.dataset.episodes`). Add
 """
 from __future__ import annotations
 
-import dataclasses
-
 import hashlib
 import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping
 
 from findview.dataset.difficulty import MIN_PATH, check_fov, check_hard_rule, check_pitch_bound
 from findview.dataset.discovery import KINDS, DatasetError, ImageEntry, discover, validate_images
 from findview.dataset.episodes import episode_file, make_static_episodes, write_episode_file
 from findview.dataset.splits import SPLITS, SPLITS_FILE, load_split, normalize_ratios, read_splits, split_entries, write_splits
-from findview.dataset.synthetic import GENERATOR_VERSION, SCENE_KINDS, ensure_synthetic_images
+from findview.dataset.synthetic import GENERATOR_VERSION, ensure_synthetic_images
 from findview.episode import DIFFICULTIES
+
+if TYPE_CHECKING:  # findview.config imports the task, which imports this package
+    from findview.config import DatasetConfig
 
 __all__ = ["DatasetSummary", "dataset_settings", "prepare_dataset", "ensure_dataset", "make_dataset_command", "resolve_path"]
 
@@ -74,53 +58,18 @@ def resolve_path(path: str | os.PathLike) -> Path:
     return Path(os.path.abspath(os.path.expanduser(str(path))))
 
 
-def _to_plain(cfg: Any) -> dict[str, Any]:
-    """A plain dict of the config, resolving interpolations; a missing mandatory root becomes ``None``."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-    except ImportError:  # pragma: no cover
-        DictConfig = ListConfig = ()  # type: ignore[assignment,misc]
-    if isinstance(cfg, DictConfig):
-        out = {}
-        for key in cfg.keys():
-            if OmegaConf.is_missing(cfg, key):
-                out[key] = None
-                continue
-            value = cfg[key]
-            out[key] = OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
-        return out
-    if isinstance(cfg, Mapping):
-        return dict(cfg)
-    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):  # the validated DatasetConfig
-        return dataclasses.asdict(cfg)
-    raise DatasetError(f"dataset config must be a DatasetConfig or a mapping, got {type(cfg).__name__}")
+def dataset_settings(cfg: "DatasetConfig") -> dict[str, Any]:
+    """The settings record of a ``dataset`` section (a plain dict: fingerprints, file headers and messages
+    read it), after the checks the schema's types cannot express.
 
-
-def _int_key(raw: Mapping[str, Any], key: str, default: int) -> int:
-    """``raw[key]`` as an int (``default`` when absent / null); a one-line error naming the key otherwise."""
-    value = raw.get(key)
-    if value is None:
-        return default
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        raise DatasetError(f"dataset.{key} must be an integer, got {value!r}")
-    try:
-        as_float = float(value)
-    except ValueError:
-        raise DatasetError(f"dataset.{key} must be an integer, got {value!r}") from None
-    if not as_float.is_integer():
-        raise DatasetError(f"dataset.{key} must be an integer, got {value!r}")
-    return int(as_float)
-
-
-def dataset_settings(cfg: Any) -> dict[str, Any]:
-    """Validated settings (plain dict with defaults) from a ``dataset`` config (DictConfig or dict)."""
-    raw = _to_plain(cfg)
-    kind = raw.get("kind")
+    Raises:
+        DatasetError: no root for the data set, an episode pitch bound or step limit out of range (naming the
+            key and the fix).
+    """
+    kind, name = cfg.kind, cfg.name
     if kind not in KINDS:
         raise DatasetError(f"dataset.kind must be one of {', '.join(KINDS)}, got {kind!r}")
-    name = str(raw.get("name") or kind)
-    root = raw.get("root")
-    if root in (None, "", "???"):
+    if cfg.root in (None, ""):
         env = _ENV_HINT.get(kind)
         raise DatasetError(
             f"dataset.root is not set for dataset {name!r}: pass dataset.root=<{_ROOT_HINT[kind]}>"
@@ -129,20 +78,20 @@ def dataset_settings(cfg: Any) -> dict[str, Any]:
     st: dict[str, Any] = {
         "name": name,
         "kind": kind,
-        "root": str(root),
-        "subset": raw.get("subset") or ("indoor" if kind == "sun360" else None),
-        "out_dir": str(raw.get("out_dir") or f"data/{name}"),
-        "split": list(raw.get("split") if raw.get("split") is not None else (0.8, 0.1, 0.1)),
-        "split_seed": int(raw.get("split_seed") or 0),
-        "episodes_per_image": raw.get("episodes_per_image", 1),
-        "episode_seed": int(raw.get("episode_seed") or 0),
-        "episode_fovs": list(raw.get("episode_fovs") if raw.get("episode_fovs") is not None else (90, 60)),
-        "episode_pitch_bound": _int_key(raw, "episode_pitch_bound", 60),
-        "episode_max_steps": _int_key(raw, "episode_max_steps", 5000),
-        "hard_rule": raw.get("hard_rule") or "or",
-        "splits_to_make": list(raw.get("splits_to_make") if raw.get("splits_to_make") is not None else ("val", "test")),
-        "validate": bool(raw.get("validate", True)),
-        "workers": raw.get("workers"),
+        "root": str(cfg.root),
+        # a sun360 layout without a subset reads the indoor panoramas (the paper's main data)
+        "subset": cfg.subset if cfg.subset is not None or kind != "sun360" else "indoor",
+        "out_dir": str(cfg.out_dir),
+        "split": list(cfg.split),
+        "split_seed": int(cfg.split_seed),
+        "episodes_per_image": int(cfg.episodes_per_image),
+        "episode_seed": int(cfg.episode_seed),
+        "episode_fovs": list(cfg.episode_fovs),
+        "episode_pitch_bound": int(cfg.episode_pitch_bound),
+        "episode_max_steps": int(cfg.episode_max_steps),
+        "hard_rule": cfg.hard_rule,
+        "splits_to_make": list(cfg.splits_to_make),
+        "validate": bool(cfg.validate),
     }
     normalize_ratios(st["split"])
     try:
@@ -151,9 +100,6 @@ def dataset_settings(cfg: Any) -> dict[str, Any]:
             check_fov(f)
     except ValueError as e:
         raise DatasetError(f"dataset: {e}") from None
-    k = st["episodes_per_image"]
-    if isinstance(k, bool) or not isinstance(k, int) or k < 0:
-        raise DatasetError(f"dataset.episodes_per_image must be an integer >= 0, got {k!r}")
     bad = [s for s in st["splits_to_make"] if s not in SPLITS]
     if bad:
         raise DatasetError(f"dataset.splits_to_make holds unknown splits {bad}; valid: {', '.join(SPLITS)}")
@@ -167,10 +113,8 @@ def dataset_settings(cfg: Any) -> dict[str, Any]:
             f"got {st['episode_max_steps']}"
         )
     if kind == "synthetic":
-        st["num_images"] = int(raw.get("num_images") or 40)
-        st["seed"] = int(raw.get("seed") or 0)
-        st["width"] = int(raw.get("width") or 1024)
-        st["labels"] = [str(x) for x in (raw.get("labels") or SCENE_KINDS)]
+        st.update(num_images=int(cfg.num_images), seed=int(cfg.seed), width=int(cfg.width),
+                  labels=[str(x) for x in cfg.labels])
     return st
 
 
@@ -334,7 +278,7 @@ def _episodes_mismatch(header: Mapping[str, Any], st: Mapping[str, Any]) -> str:
 
 
 def prepare_dataset(
-    dataset_cfg: Any,
+    dataset_cfg: DatasetConfig,
     fovs: Iterable[float] | None = None,
     *,
     force: bool = False,
@@ -345,7 +289,7 @@ def prepare_dataset(
     rebuilding the others).
 
     Args:
-        dataset_cfg: a ``dataset`` config node or dict (keys in the module docstring). The episodes
+        dataset_cfg: the ``dataset`` section (keys in the module docstring). The episodes
             follow ``dataset.episode_*`` and ``dataset.hard_rule`` only (docs/TASK.md, Difficulties).
         fovs: FoVs (degrees) to make episode files for; ``None`` = ``dataset.episode_fovs``.
         force: rebuild everything (images are still only generated when missing / changed).
@@ -360,7 +304,7 @@ def prepare_dataset(
 
 
 def ensure_dataset(
-    dataset_cfg: Any,
+    dataset_cfg: DatasetConfig,
     fovs: Iterable[float] | None = None,
     *,
     pitch_bound: int | None = None,
@@ -383,7 +327,7 @@ def ensure_dataset(
     / :func:`findview.dataset.load_split`.
 
     Args:
-        dataset_cfg: a ``dataset`` config node or dict.
+        dataset_cfg: the ``dataset`` section.
         fovs: FoVs (degrees) whose episode files are needed; ``None`` = ``dataset.episode_fovs``.
         pitch_bound: the caller's pitch clamp (``task.pitch_bound``, degrees). When given and episode
             files are needed, it must equal ``dataset.episode_pitch_bound``: episodes sampled for another
@@ -408,7 +352,7 @@ def ensure_dataset(
 
 
 def _build(
-    dataset_cfg: Any,
+    dataset_cfg: DatasetConfig,
     fovs: Iterable[float] | None,
     *,
     force: bool,
@@ -464,7 +408,7 @@ def _build(
     if st["kind"] == "synthetic":
         say(f"synthetic images under {root}")
         entries = ensure_synthetic_images(
-            root, st["num_images"], st["seed"], st["width"], st["labels"], progress, workers=st["workers"]
+            root, st["num_images"], st["seed"], st["width"], st["labels"], progress
         )
 
     split_images: dict[str, list[ImageEntry]]
@@ -476,7 +420,7 @@ def _build(
             entries = discover(st["kind"], root, st["subset"])
         say(f"found {len(entries)} images under {root}")
         if st["validate"]:
-            validate_images(entries, workers=st["workers"], progress=progress)
+            validate_images(entries, progress=progress)
         split_images = split_entries(entries, root, st["split"], st["split_seed"])
         extra = {"kind": st["kind"], "subset": st["subset"], "fingerprint": fp}
         write_splits(out_dir, split_images, dataset=st["name"], root=root, seed=st["split_seed"], ratios=st["split"], extra=extra)

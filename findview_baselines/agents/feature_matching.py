@@ -34,12 +34,15 @@ import math
 from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from findview.episode import DIFFICULTIES, Episode
+
+if TYPE_CHECKING:
+    from findview_baselines.config import FeatureAgentConfig
 from findview_baselines.agents.base import DOWN, LEFT, NUM_ACTIONS, RIGHT, STOP, UP, gray_of
 from findview_baselines.agents.feature_base import (
     DETECTORS,
@@ -192,19 +195,6 @@ class FeatureMatchingAgent(FeatureAgent):
     """
 
     name = "feature"
-    CONFIG_KEYS = (
-        "detector",
-        "n_features",
-        "ratio",
-        "d_thresh",
-        "min_keypoints",
-        "min_matches",
-        "stop_px",
-        "osc_window",
-        "osc_rule",
-        "threads",
-        "cv2_threads",
-    )
 
     def __init__(
         self,
@@ -243,11 +233,15 @@ class FeatureMatchingAgent(FeatureAgent):
 
     @classmethod
     def from_config(  # type: ignore[override]
-        cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int, detector: str | None = None
+        cls, cfg: "FeatureAgentConfig", num_envs: int, device: str | torch.device, seed: int
     ) -> "FeatureMatchingAgent":
-        """Build from a config; ``detector`` (``"orb"``/``"sift"``) is imposed by the registry name."""
-        fixed = {} if detector is None else {"detector": detector}
-        return super().from_config(cfg, num_envs, device, seed, **fixed)
+        """Factory for :func:`~findview_baselines.agents.make_agent` from the typed ``agent`` section; its
+        ``name`` (``orb`` | ``sift``) is the detector."""
+        return cls(
+            num_envs, device, seed, detector=cfg.name, n_features=cfg.n_features, ratio=cfg.ratio,
+            d_thresh=cfg.d_thresh, min_keypoints=cfg.min_keypoints, min_matches=cfg.min_matches, stop_px=cfg.stop_px,
+            osc_window=cfg.osc_window, osc_rule=cfg.osc_rule, threads=cfg.threads, cv2_threads=cfg.cv2_threads,
+        )
 
     @property
     def states(self) -> list[_SlotState]:

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from findview.episode import Episode
 from findview.geometry import wrap_yaw
-from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, Agent, check_keys, to_plain_dict
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, Agent
+
+if TYPE_CHECKING:
+    from findview_baselines.config import OracleAgentConfig
 
 ORDERS = ("pitch_first", "yaw_first")
 
@@ -29,7 +32,6 @@ class OracleAgent(Agent):
     """
 
     name = "oracle"
-    CONFIG_KEYS = ("order", "pitch_bound", "step_deg")
 
     def __init__(
         self,
@@ -57,10 +59,9 @@ class OracleAgent(Agent):
         self.done = np.zeros(n, dtype=bool)
 
     @classmethod
-    def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "OracleAgent":
-        c = to_plain_dict(cfg)
-        check_keys(cls.name, c, cls.CONFIG_KEYS)
-        return cls(num_envs, device, seed, **{k: c[k] for k in cls.CONFIG_KEYS if k in c})
+    def from_config(cls, cfg: "OracleAgentConfig", num_envs: int, device: str | torch.device, seed: int) -> "OracleAgent":
+        """Factory for :func:`~findview_baselines.agents.make_agent` from the typed ``agent`` section."""
+        return cls(num_envs, device, seed, order=cfg.order, pitch_bound=cfg.pitch_bound, step_deg=cfg.step_deg)
 
     def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
         super().reset(env_ids, episodes)

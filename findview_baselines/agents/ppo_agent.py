@@ -8,7 +8,7 @@
   distribution with one random stream per episode (seeded from the agent seed and the episode's id),
   so a trajectory does not depend on which slot or batch the episode ran in.
 - A slot that answered STOP keeps answering STOP without running the network until it is reset.
-- ``revisit_penalty > 0`` switches on a search memory (:class:`~findview_baselines.agents.revisit.RevisitPenalty`):
+- ``revisit_penalty > 0`` switches on a search memory (:class:`~findview_baselines.rl.search_memory.RevisitPenalty`):
   each move's logit is lowered by that many logit units per earlier visit of the pose it leads to (poses
   dead-reckoned from the agent's own actions), which breaks left/right loops. 0 (the default) is the plain policy.
 
@@ -16,21 +16,24 @@ Checkpoints are read with ``torch.load(..., weights_only=True)``; the layout is 
 trainer (``{"signature": {...}, "policy": state_dict, ...}``, see ``findview_baselines.rl.checkpoint``).
 
 Importing this module registers the agent as ``ppo`` for :func:`findview_baselines.agents.make_agent`
-(``cfg`` must then hold ``checkpoint``).
+(which then needs ``checkpoint=``, and the view size as ``height=`` / ``width=``).
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from findview.episode import Episode
-from findview_baselines.agents.base import STOP, Agent, episode_rng, to_plain_dict
-from findview_baselines.rl.search_memory import SEARCH_KEYS, make_revisit_penalty, search_settings
+from findview_baselines.agents.base import STOP, Agent, episode_rng
+from findview_baselines.rl.search_memory import make_revisit_penalty
+
+if TYPE_CHECKING:
+    from findview_baselines.config import PPOAgentConfig
 
 __all__ = ["PPOAgent", "load_ppo_checkpoint"]
 
@@ -55,14 +58,12 @@ class PPOAgent(Agent):
         num_envs, device, seed: see :class:`Agent`; ``device`` is where the network runs.
         sample: draw actions from the policy instead of taking the argmax.
         revisit_penalty: logit units subtracted from a move per earlier visit of its destination pose
-            (0: off; see :mod:`findview_baselines.agents.revisit`).
+            (0: off; see :mod:`findview_baselines.rl.search_memory`).
         revisit_row_stride: with the memory on, after a turn move to the next search row this many 1-step
             moves up or down (alternately, growing); 0: off.
     """
 
     name = "ppo"
-    #: keys of configs/agent/ppo.yaml used here; every other key (training hyper-parameters) is ignored
-    CONFIG_KEYS = ("checkpoint", "sample", "height", "width", *SEARCH_KEYS)
 
     def __init__(
         self,
@@ -130,17 +131,26 @@ class PPOAgent(Agent):
         return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride)
 
     @classmethod
-    def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "PPOAgent":
-        """Factory for :func:`make_agent`: ``cfg`` holds ``checkpoint`` (required), optionally ``sample``
-        (draw actions instead of the argmax), ``revisit_penalty`` and the expected ``height`` / ``width``;
-        training keys are ignored."""
-        c = to_plain_dict(cfg)
-        if not c.get("checkpoint"):
+    def from_config(
+        cls,
+        cfg: "PPOAgentConfig",
+        num_envs: int,
+        device: str | torch.device,
+        seed: int,
+        *,
+        checkpoint: str | os.PathLike | None = None,
+        height: int | None = None,
+        width: int | None = None,
+    ) -> "PPOAgent":
+        """Factory for :func:`~findview_baselines.agents.make_agent`: the policy of ``checkpoint`` (required; its
+        model comes from the checkpoint's signature), acting as the typed ``agent`` section says (``sample``,
+        the search memory). ``height`` / ``width``: the simulator's view size, pixels (checked against the
+        checkpoint's)."""
+        if not checkpoint:
             raise ValueError("agent 'ppo' needs a checkpoint: pass checkpoint=<path to a .pth file>")
-        sample = bool(c.get("sample", False))
         return cls.from_checkpoint(
-            c["checkpoint"], num_envs, device, seed, bool(sample), height=c.get("height"), width=c.get("width"),
-            **search_settings(c),
+            checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
+            revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
         )
 
     # acting --------------------------------------------------------------------------------------

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING
 
 import torch
 
 from findview.episode import Episode
-from findview_baselines.agents.base import NUM_ACTIONS, Agent, check_keys, to_plain_dict
+from findview_baselines.agents.base import NUM_ACTIONS, Agent
+
+if TYPE_CHECKING:
+    from findview_baselines.config import RandomAgentConfig
 
 
 class RandomAgent(Agent):
@@ -18,7 +21,6 @@ class RandomAgent(Agent):
     """
 
     name = "random"
-    CONFIG_KEYS = ()
 
     def __init__(self, num_envs: int, device: str | torch.device = "cpu", seed: int = 0) -> None:
         super().__init__(num_envs, device, seed)
@@ -26,8 +28,9 @@ class RandomAgent(Agent):
         self.generator.manual_seed(self.seed)
 
     @classmethod
-    def from_config(cls, cfg: Any, num_envs: int, device: str | torch.device, seed: int) -> "RandomAgent":
-        check_keys(cls.name, to_plain_dict(cfg), cls.CONFIG_KEYS)
+    def from_config(cls, cfg: "RandomAgentConfig", num_envs: int, device: str | torch.device, seed: int) -> "RandomAgent":
+        """Factory for :func:`~findview_baselines.agents.make_agent` (the config has no setting besides the name)."""
+        del cfg
         return cls(num_envs, device, seed)
 
     def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:

@@ -35,18 +35,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["RevisitPenalty", "SEARCH_KEYS", "search_settings", "make_revisit_penalty"]
-
-#: the agent-config keys of the search memory (``agent.revisit_penalty``, ``agent.revisit_row_stride``)
-SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride")
-
-
-def search_settings(agent_cfg: Any) -> dict[str, Any]:
-    """``{"revisit_penalty": float, "revisit_row_stride": int}`` from an agent config (mapping; missing = 0)."""
-    get = agent_cfg.get if agent_cfg is not None else (lambda k, d=None: d)
-    return {"revisit_penalty": float(get("revisit_penalty", 0.0) or 0.0),
-            "revisit_row_stride": int(get("revisit_row_stride", 0) or 0)}
-
+__all__ = ["RevisitPenalty", "make_revisit_penalty"]
 
 def make_revisit_penalty(
     num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0
