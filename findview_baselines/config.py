@@ -142,8 +142,10 @@ class FeatureAgentConfig:
 
 @dataclass
 class RotationAgentConfig:
-    """The exact geometric agent (beyond the paper): relative-rotation estimates from feature matches, dead
-    reckoning, a colour check before every stop, a covering search of the sphere."""
+    """The exact geometric agent (beyond the paper): relative-rotation estimates from feature matches (keypoints
+    on locally contrast-normalised images), dead reckoning, a structure and colour check before every stop
+    (blind to fog and contrast), a one-degree refinement of every stop that is not byte-identical to the
+    target, a covering search of the sphere (findview_baselines/agents/rotation.py)."""
 
     name: str = "rotation"
     """Agent name (make_agent key)."""
@@ -176,11 +178,11 @@ class RotationAgentConfig:
     max_arrivals: int = 6
     """Arrivals that still ask for moves before the candidate is decided where it is."""
     verify_thresh: float = 0.3
-    """Correlation of the locally contrast-normalised gray view and target (1/4 size) needed to stop, in [-1, 1]."""
+    """Content check: correlation of the locally contrast-normalised gray view and target (1/4 size) needed to stop, in [-1, 1]."""
     verify_thresh_geo: float = 0.1
-    """... or this much when the estimate at the view puts the target there with verify_inliers inliers."""
+    """... or this much when the estimate at the view puts the target there with verify_inliers inliers (with such an estimate, an opponent-colour score of verify_opponent also passes the content check)."""
     verify_inliers: int = 12
-    """Inliers of an estimate rounding to (0, 0) for the lower threshold verify_thresh_geo."""
+    """Inliers of an estimate rounding to (0, 0) for the lower content thresholds."""
     verify_chroma: float = 1.0
     """Largest difference of the mean chromaticity r / (r + g + b) (any channel) to stop (1: off; fog greys colours, verify_hue covers hue)."""
     verify_hue: float = 64.0

@@ -373,58 +373,11 @@ def _build(
     splits_path = out_dir / SPLITS_FILE
     needed = st["splits_to_make"] if splits is None else [s for s in st["splits_to_make"] if s in set(splits)]
     wanted = [(split, fov) for split in needed for fov in fov_list]
-    eb = st["episode_pitch_bound"]
-    if pitch_bound is not None and wanted and check_pitch_bound(pitch_bound) != eb:
-        pb = int(pitch_bound)
-        cmd = make_dataset_command(st, episode_pitch_bound=pb, out_dir=f"{st['out_dir']}_pitch{pb}")
-        raise DatasetError(
-            f"{episode_file(out_dir, *wanted[0])}: the static episodes of dataset {st['name']!r} have pitches "
-            f"within +-{eb} degrees (dataset.episode_pitch_bound={eb}) but this run clamps the pitch at "
-            f"task.pitch_bound={pb}; make episodes for it with: "
-            f"{cmd} "
-            f"and pass the same dataset.* overrides to this run (or run with task.pitch_bound={eb})"
-        )
+    if pitch_bound is not None and wanted:
+        _check_episode_pitch_bound(st, int(pitch_bound), episode_file(out_dir, *wanted[0]))
     fp = _splits_fingerprint(st, root)
-
-    doc: dict[str, Any] | None = None
-    if not force and splits_path.is_file():
-        try:
-            doc = read_splits(out_dir)
-        except (ValueError, OSError) as e:
-            if not rewrite:
-                raise DatasetError(f"{splits_path} is unreadable ({' '.join(str(e).split())}); rebuild it with: "
-                                   f"{make_dataset_command(st)}") from None
-            doc = None
-    reused = doc is not None and doc.get("fingerprint") == fp
-    if doc is not None and not reused and not rewrite:
-        raise DatasetError(
-            f"{splits_path} was made for other dataset settings ({_splits_mismatch(doc, st, root)}) and is not "
-            f"overwritten here: rebuild it and the episode files with: "
-            f"{make_dataset_command(st, **_splits_overrides(doc, st, root))} "
-            f"plus this run's dataset.* overrides (or choose another dataset.out_dir)"
-        )
-
-    entries: list[ImageEntry] | None = None
-    if st["kind"] == "synthetic":
-        say(f"synthetic images under {root}")
-        entries = ensure_synthetic_images(
-            root, st["num_images"], st["seed"], st["width"], st["labels"], progress
-        )
-
-    split_images: dict[str, list[ImageEntry]]
-    if reused:
-        split_images = {s: load_split(out_dir, s) for s in SPLITS}
-        say(f"reusing {splits_path}")
-    else:
-        if entries is None:
-            entries = discover(st["kind"], root, st["subset"])
-        say(f"found {len(entries)} images under {root}")
-        if st["validate"]:
-            validate_images(entries, progress=progress)
-        split_images = split_entries(entries, root, st["split"], st["split_seed"])
-        extra = {"kind": st["kind"], "subset": st["subset"], "fingerprint": fp}
-        write_splits(out_dir, split_images, dataset=st["name"], root=root, seed=st["split_seed"], ratios=st["split"], extra=extra)
-        say(f"wrote {splits_path}")
+    reused = _splits_reusable(st, root, out_dir, fp, force, rewrite)
+    split_images = _split_images(st, root, out_dir, fp, reused, progress, say)
 
     labels: dict[str, dict[str, int]] = {s: {} for s in SPLITS}
     for s in SPLITS:
@@ -434,46 +387,117 @@ def _build(
         name=st["name"], kind=st["kind"], root=root, out_dir=out_dir, splits_file=splits_path,
         splits_reused=reused, images={s: len(split_images[s]) for s in SPLITS}, labels=labels,
     )
-    K = st["episodes_per_image"]
-    ms = st["episode_max_steps"]
     for split, fov in wanted:
-        path = episode_file(out_dir, split, fov)
-        efp = _episodes_fingerprint(fp, split, fov, K, st)
-        header = None if force or not path.is_file() else _read_episode_header(path)
-        key = (split, fov)
-        summary.episode_files[key] = path
-        if header is not None and header.get("fingerprint") == efp and (reused or not rewrite):
-            summary.episode_counts[key] = dict(header.get("difficulty_counts", {}))
-            summary.episodes_reused[key] = True
-            continue
-        have = _made_with_k(header, fp, split, fov, st) if not rewrite and header is not None else None
-        if have is not None and have > K:  # more episodes per image than asked for: the tool takes the first K
-            summary.episode_counts[key] = {d: int(n) * K // have for d, n in header["difficulty_counts"].items()}
-            summary.episodes_reused[key] = True
-            continue
-        if have is not None:  # fewer: the file made with K keeps the ones it holds as its first ones (nested)
-            say(f"extending {path} from {have} to {K} episodes per image (its episodes stay)")
-        elif not rewrite and path.is_file():
-            why = "unreadable header" if header is None else _episodes_mismatch(header, st)
-            fix = {} if header is None else {
-                k: new for k, (old, new) in _episodes_recorded(header, st).items() if old != new
-            }
-            raise DatasetError(
-                f"{path} was made for other settings ({why}) and is not overwritten here: rebuild it with: "
-                f"{make_dataset_command(st, **fix)} plus this run's dataset.* overrides (or choose another dataset.out_dir)"
-            )
-        episodes = make_static_episodes(split_images[split], split, fov, K, st["episode_seed"], eb, ms, st["hard_rule"])
-        counts = {d: sum(1 for e in episodes if e.difficulty == d) for d in DIFFICULTIES}
-        write_episode_file(
-            path, episodes, dataset=st["name"], root=root, split=split, fov=fov, hard_rule=st["hard_rule"],
-            seed=st["episode_seed"],
-            extra={"episodes_per_image": K, "nested": True, "pitch_bound": eb, "max_steps": ms, "fingerprint": efp,
-                   "difficulty_counts": counts},
-        )
-        summary.episode_counts[key] = counts
-        summary.episodes_reused[key] = False
-        say(f"wrote {path}")
+        _ensure_episode_file(summary, st, fp, split, fov, split_images[split], force, rewrite, reused, say)
     return summary
+
+
+def _check_episode_pitch_bound(st: Mapping[str, Any], pitch_bound: int, first_file: Path) -> None:
+    """Raise :class:`DatasetError` when the run clamps the pitch at another bound than the static episodes."""
+    eb = st["episode_pitch_bound"]
+    if check_pitch_bound(pitch_bound) == eb:
+        return
+    pb = int(pitch_bound)
+    cmd = make_dataset_command(st, episode_pitch_bound=pb, out_dir=f"{st['out_dir']}_pitch{pb}")
+    raise DatasetError(
+        f"{first_file}: the static episodes of dataset {st['name']!r} have pitches "
+        f"within +-{eb} degrees (dataset.episode_pitch_bound={eb}) but this run clamps the pitch at "
+        f"task.pitch_bound={pb}; make episodes for it with: "
+        f"{cmd} "
+        f"and pass the same dataset.* overrides to this run (or run with task.pitch_bound={eb})"
+    )
+
+
+def _splits_reusable(st: Mapping[str, Any], root: Path, out_dir: Path, fp: str, force: bool, rewrite: bool) -> bool:
+    """Whether ``splits.json`` exists and was made with these settings (``rewrite=False``: a stale or unreadable
+    one raises :class:`DatasetError` naming the command that rebuilds it)."""
+    splits_path = out_dir / SPLITS_FILE
+    if force or not splits_path.is_file():
+        return False
+    try:
+        doc = read_splits(out_dir)
+    except (ValueError, OSError) as e:
+        if not rewrite:
+            raise DatasetError(f"{splits_path} is unreadable ({' '.join(str(e).split())}); rebuild it with: "
+                               f"{make_dataset_command(st)}") from None
+        return False
+    if doc.get("fingerprint") == fp:  # a file's header, not config: older files have no fingerprint
+        return True
+    if not rewrite:
+        raise DatasetError(
+            f"{splits_path} was made for other dataset settings ({_splits_mismatch(doc, st, root)}) and is not "
+            f"overwritten here: rebuild it and the episode files with: "
+            f"{make_dataset_command(st, **_splits_overrides(doc, st, root))} "
+            f"plus this run's dataset.* overrides (or choose another dataset.out_dir)"
+        )
+    return False
+
+
+def _split_images(st: Mapping[str, Any], root: Path, out_dir: Path, fp: str, reused: bool, progress: bool,
+                  say: Callable[[str], None]) -> dict[str, list[ImageEntry]]:
+    """The images of every split: read from ``splits.json`` (``reused``) or discovered (synthetic ones made),
+    validated, split and written."""
+    entries: list[ImageEntry] | None = None
+    if st["kind"] == "synthetic":
+        say(f"synthetic images under {root}")
+        entries = ensure_synthetic_images(root, st["num_images"], st["seed"], st["width"], st["labels"], progress)
+    if reused:
+        say(f"reusing {out_dir / SPLITS_FILE}")
+        return {s: load_split(out_dir, s) for s in SPLITS}
+    if entries is None:
+        entries = discover(st["kind"], root, st["subset"])
+    say(f"found {len(entries)} images under {root}")
+    if st["validate"]:
+        validate_images(entries, progress=progress)
+    split_images = split_entries(entries, root, st["split"], st["split_seed"])
+    extra = {"kind": st["kind"], "subset": st["subset"], "fingerprint": fp}
+    write_splits(out_dir, split_images, dataset=st["name"], root=root, seed=st["split_seed"], ratios=st["split"], extra=extra)
+    say(f"wrote {out_dir / SPLITS_FILE}")
+    return split_images
+
+
+def _ensure_episode_file(summary: DatasetSummary, st: Mapping[str, Any], fp: str, split: str, fov: float,
+                         images: list[ImageEntry], force: bool, rewrite: bool, reused: bool,
+                         say: Callable[[str], None]) -> None:
+    """Reuse, take the first K of, extend, refuse or (re)write the static episode file of ``(split, fov)``;
+    records what happened in ``summary``."""
+    K, ms, eb = st["episodes_per_image"], st["episode_max_steps"], st["episode_pitch_bound"]
+    path = episode_file(summary.out_dir, split, fov)
+    efp = _episodes_fingerprint(fp, split, fov, K, st)
+    header = None if force or not path.is_file() else _read_episode_header(path)
+    key = (split, fov)
+    summary.episode_files[key] = path
+    if header is not None and header.get("fingerprint") == efp and (reused or not rewrite):
+        summary.episode_counts[key] = dict(header.get("difficulty_counts", {}))
+        summary.episodes_reused[key] = True
+        return
+    have = _made_with_k(header, fp, split, fov, st) if not rewrite and header is not None else None
+    if have is not None and have > K:  # more episodes per image than asked for: the tool takes the first K
+        summary.episode_counts[key] = {d: int(n) * K // have for d, n in header["difficulty_counts"].items()}
+        summary.episodes_reused[key] = True
+        return
+    if have is not None:  # fewer: the file made with K keeps the ones it holds as its first ones (nested)
+        say(f"extending {path} from {have} to {K} episodes per image (its episodes stay)")
+    elif not rewrite and path.is_file():
+        why = "unreadable header" if header is None else _episodes_mismatch(header, st)
+        fix = {} if header is None else {
+            k: new for k, (old, new) in _episodes_recorded(header, st).items() if old != new
+        }
+        raise DatasetError(
+            f"{path} was made for other settings ({why}) and is not overwritten here: rebuild it with: "
+            f"{make_dataset_command(st, **fix)} plus this run's dataset.* overrides (or choose another dataset.out_dir)"
+        )
+    episodes = make_static_episodes(images, split, fov, K, st["episode_seed"], eb, ms, st["hard_rule"])
+    counts = {d: sum(1 for e in episodes if e.difficulty == d) for d in DIFFICULTIES}
+    write_episode_file(
+        path, episodes, dataset=st["name"], root=summary.root, split=split, fov=fov, hard_rule=st["hard_rule"],
+        seed=st["episode_seed"],
+        extra={"episodes_per_image": K, "nested": True, "pitch_bound": eb, "max_steps": ms, "fingerprint": efp,
+               "difficulty_counts": counts},
+    )
+    summary.episode_counts[key] = counts
+    summary.episodes_reused[key] = False
+    say(f"wrote {path}")
 
 
 def _made_with_k(header: Mapping[str, Any], splits_fp: str, split: str, fov: float, st: Mapping[str, Any]) -> int | None:

@@ -2,12 +2,15 @@
 
 It estimates the full relative rotation between its view and the target from feature matches with the
 known pinhole geometry (docs/TASK.md, world), walks straight to the candidate pose this gives, checks
-in colour that the view there *is* the target before it calls STOP, and searches the sphere
-systematically when nothing matches.
+in structure and colour that the view there *is* the target before it calls STOP, refines the stop to
+the best one-degree pose, and searches the sphere systematically when nothing matches. The target may
+be corrupted (docs/TASK.md, corruptions; the view never is): keypoints are detected on locally
+contrast-normalised images and every check is blind to what fog and contrast do to intensities.
 
 Geometry (the relative rotation from feature matches, RANSAC + Kabsch, its decomposition into
-``dpitch, dyaw``): ``rotation_geometry.py``; the photometric check (``photometric_score``,
-``mean_chromaticity``): ``photometric.py``. This module holds the agent and re-exports their names.
+``dpitch, dyaw``): ``rotation_geometry.py``; the photometric side (contrast normalisation for the
+detector, the structure, colour and opponent-colour scores, the hue check): ``photometric.py``. This
+module holds the agent and re-exports their names.
 
 Dead reckoning. The agent never sees its rotation, but it knows every move it made: its pose relative
 to the start, ``(pose_p, pose_y)`` degrees, is exact in yaw (moves never fail there) and in pitch up
@@ -23,15 +26,20 @@ Policy of a slot (states ``search``, ``goto``, ``refine``):
   left; a new estimate after half the moves the last one asked for (at least ``reestimate_every``)
   and on arrival replaces the candidate (``candidate = pose + round(estimate)``);
 - **verify before stopping**: where the estimate rounds to ``(0, 0)`` (or on arrival without an
-  estimate), a check of the view against the target in colour decides: :func:`photometric_score`
-  (structure in colour) at least ``verify_thresh`` and :func:`mean_chromaticity` within
-  ``verify_chroma`` -> STOP, else the candidate is rejected: remembered, and estimates that point
+  estimate), :meth:`RotationAgent.verify` decides: the content must match (:func:`structure_score` of
+  the locally contrast-normalised gray images at least ``verify_thresh``; less where the estimate
+  vouches for the pose with ``verify_inliers`` inliers) and the colours must match (the high-passed
+  colour correlation at least ``verify_colour``, or the high-passed opponent-colour correlation, which
+  fog and contrast only scale, at least ``verify_opponent``; the mean colours the same hue up to a
+  gain) -> refine and STOP; else the candidate is rejected: remembered, and estimates that point
   within ``reject_radius`` degrees of a rejected candidate are ignored from then on. After
   ``max_arrivals`` arrivals that each ask for more moves, the candidate is decided at the pose reached;
 - **search** when no usable estimate exists: rows of constant pitch, each a yaw turn in one seeded
   direction, estimating every ``sweep_check_every`` moves from keypoints detected at ``search_scale``
   (a target in view is found at half size; the first look of an episode, the walk and the final
-  checks use full-size views); a row turns ``360 - fov / 3`` degrees. The first row is at the start
+  checks use full-size views; when a whole row's worth of coarse looks in a row gave no valid estimate,
+  e.g. a fogged target whose half-size keypoints are the fog's, the rest of the search looks at full
+  size); a row turns ``360 - fov / 3`` degrees. The first row is at the start
   pitch; the next is ``sweep_pitch`` degrees above the highest row or below the lowest one, among
   those that can still hold uncovered target pitches (a row covers ``sweep_pitch / 2`` above and
   below it), bounded by what the agent knows of the pitch bounds: the nearer one while the horizon is
@@ -41,10 +49,10 @@ Policy of a slot (states ``search``, ``goto``, ``refine``):
   resumes it;
 - **exact stop**: a view byte-identical to the target (a clean target) stops at once. A candidate
   that passes the check without being identical (a corrupted target, or an estimate off by one) is
-  refined when the estimate is ambiguous (within ``REFINE_MARGIN`` of halfway between two poses) or
-  missing: the agent moves to its one-degree neighbours, scores each pose once with
-  :func:`photometric_score` at ``REFINE_SCALE`` (1 degree ~ 1 pixel), climbs to a better one while
-  there is one and stops on the best (``refine``; about 8 extra steps);
+  always refined (``refine``), however confident the estimate (blur biases it by a degree or two): the
+  agent moves to its one-degree neighbours, scores each pose once with :func:`structure_score` at
+  ``REFINE_SCALE`` (1 degree ~ 1 pixel), climbs to a better one while there is one and stops on the
+  best (about 8 extra steps);
 - when the search has covered every pitch, the agent walks to the best-scoring rejected candidate,
   refines there and stops; when no candidate came up at all, it searches once more with full-size
   views, then goes to the best-scoring view it checked (a featureless target, e.g. a clear sky),
@@ -78,10 +86,12 @@ from findview_baselines.agents.photometric import (
     LCN_SIGMA,
     VERIFY_SCALE,
     VERIFY_SIGMA,
+    colour_template,
     detection_image,
     hue_residual,
     mean_chromaticity,
     opponent_mean,
+    opponent_template,
     photometric_score,
     photometric_template,
     structure_score,
@@ -112,6 +122,7 @@ __all__ = [
     "structure_score",
     "opponent_mean",
     "hue_residual",
+    "opponent_template",
     "detection_image",
     "RotationAgent",
     "VERIFY_SCALE",
@@ -123,7 +134,7 @@ __all__ = [
 # the agent
 # --------------------------------------------------------------------------------------------------
 REFINE_SCALE = 2  # the final one-degree refinement compares at this downsampling (1 degree ~ 1 pixel)
-REFINE_MARGIN = 0.3  # ... and runs when the estimate is this close (degrees) to halfway between two poses
+REFINE_SIGMA = 4.0  # ... of images locally contrast-normalised with this window (full-size pixels)
 SEARCH, GOTO, REFINE = "search", "goto", "refine"
 
 
@@ -131,8 +142,10 @@ SEARCH, GOTO, REFINE = "search", "goto", "refine"
 class _Target:
     features: Features
     template: np.ndarray  # structure_template of the target
+    colour: np.ndarray  # colour_template of the target
     chroma: np.ndarray  # mean_chromaticity of the target
     opponent: np.ndarray  # opponent_mean of the target
+    opp_layout: np.ndarray  # opponent_template of the target
     image: np.ndarray  # (3, H, W) uint8 copy: a view equal to it is the target
     coarse: Features | None = None  # keypoints at search_scale (computed on the first coarse estimate)
     fine: np.ndarray | None = None  # structure_template at REFINE_SCALE (computed when refining)
@@ -166,6 +179,8 @@ class _RotSlot(Slot):
     scores: dict = field(default_factory=dict)  # refinement: {(pitch, yaw): fine score}
     queue: list = field(default_factory=list)  # refinement: poses still to score
     passes: int = 0  # completed searches of the whole sphere (a second one uses full-size views)
+    blind: int = 0  # coarse search estimates in a row that found nothing valid
+    full_search: bool = False  # the search estimates from full-size views (coarse ones found nothing for a row)
     exhausted: bool = False
     last_est: Any = None  # the last RotationEstimate (for inspection)
 
@@ -193,12 +208,21 @@ class RotationAgent(FeatureAgent):
         search_scale: the search detects keypoints on views downsampled by this factor (0.5; 1: full
             size); walking to a candidate and the final checks use full-size views.
         max_arrivals: arrivals that ask for more moves before the candidate is decided where it is (6).
-        verify_thresh: :func:`photometric_score` needed to stop at a candidate (0.6).
-        verify_chroma: largest difference of :func:`mean_chromaticity` (any channel) to stop (0.2).
+        verify_thresh: :func:`structure_score` (content) needed to stop at a candidate (0.3).
+        verify_thresh_geo: ... when the estimate at the view rounds to ``(0, 0)`` with at least
+            ``verify_inliers`` (12) inliers (0.1); with such an estimate an opponent-colour score of
+            ``verify_opponent`` also stands in for the content check.
+        verify_colour: colour correlation (:func:`colour_template`) that makes the colours match (0.35).
+        verify_opponent: ... or opponent-colour correlation (:func:`opponent_template`) (0.8).
+        verify_hue: largest :func:`hue_residual` of the mean colours, grey levels (64).
+        verify_chroma: largest difference of :func:`mean_chromaticity` (any channel) to stop (1.0: off).
+        lcn_sigma: local contrast normalisation window before keypoint detection, pixels (4; ``None``:
+            raw gray). See :meth:`RotationAgent.verify` for how the checks combine.
         reject_radius: estimates within this many degrees (each axis) of a rejected candidate are
             ignored (3).
-        refine: after a candidate passes the check without being the exact target, score its
-            one-degree neighbours (moving there) and stop on the best (True).
+        refine: after a candidate passes the check without being byte-identical to the target,
+            hill-climb the structure score over its one-degree neighbours (moving there) and stop on
+            the best (True).
         threads, cv2_threads: see :class:`~findview_baselines.agents.feature_base.FeatureAgent`.
     """
 
@@ -221,6 +245,10 @@ class RotationAgent(FeatureAgent):
         "verify_thresh",
         "verify_chroma",
         "verify_hue",
+        "verify_colour",
+        "verify_opponent",
+        "verify_thresh_geo",
+        "verify_inliers",
         "lcn_sigma",
         "reject_radius",
         "refine",
@@ -248,8 +276,12 @@ class RotationAgent(FeatureAgent):
         search_scale: float = 0.5,
         max_arrivals: int = 6,
         verify_thresh: float = 0.3,
-        verify_chroma: float = 0.2,
-        verify_hue: float = 25.0,
+        verify_chroma: float = 1.0,
+        verify_hue: float = 64.0,
+        verify_colour: float = 0.35,
+        verify_opponent: float = 0.8,
+        verify_thresh_geo: float = 0.1,
+        verify_inliers: int = 12,
         lcn_sigma: float | None = LCN_SIGMA,
         reject_radius: int = 3,
         refine: bool = True,
@@ -284,6 +316,10 @@ class RotationAgent(FeatureAgent):
         self.verify_thresh = float(verify_thresh)
         self.verify_chroma = float(verify_chroma)
         self.verify_hue = float(verify_hue)
+        self.verify_colour = float(verify_colour)
+        self.verify_opponent = float(verify_opponent)
+        self.verify_thresh_geo = float(verify_thresh_geo)
+        self.verify_inliers = int(verify_inliers)
         if lcn_sigma is not None and not float(lcn_sigma) > 0.0:
             raise ValueError(f"lcn_sigma must be > 0 pixels or None, got {lcn_sigma!r}")
         self.lcn_sigma = None if lcn_sigma is None else float(lcn_sigma)
@@ -303,8 +339,10 @@ class RotationAgent(FeatureAgent):
         return _Target(
             features=self._features(gray_of(target), False),
             template=structure_template(target),
+            colour=colour_template(target),
             chroma=mean_chromaticity(target),
             opponent=opponent_mean(target),
+            opp_layout=opponent_template(target),
             image=np.array(target, copy=True),
         )
 
@@ -364,21 +402,41 @@ class RotationAgent(FeatureAgent):
             pitch_limit=self.pitch_limit,
         )
 
-    def verify(self, s: _RotSlot, view: np.ndarray) -> tuple[bool, float]:
+    def verify(self, s: _RotSlot, view: np.ndarray, est: RotationEstimate | None = None) -> tuple[bool, float]:
         """The check of ``view`` against the slot's target before a stop: ``(accept, score)``.
 
-        Content: :func:`structure_score` (correlation of the locally contrast-normalised images, blind
-        to contrast changes and fog) at least ``verify_thresh``. Colour: the mean colours are the same
-        hue up to a gain (:func:`hue_residual` at most ``verify_hue`` grey levels) and their
-        chromaticities differ by at most ``verify_chroma`` on every channel. ``score`` ranks
-        candidates (the structure score, minus 1 when a colour check failed)."""
+        Four pieces of evidence, each blind to what fog and contrast do to a picture:
+
+        - *structure*: :func:`structure_score` (correlation of the locally contrast-normalised gray
+          images, blind to gain, offset and smooth fields);
+        - *colour*: :func:`photometric_score` of the high-passed colour images (:func:`colour_template`);
+        - *opponent colour*: :func:`photometric_score` of the colour-difference layouts
+          (:func:`opponent_template`), which a grey fog field cancels in exactly and fog / contrast only
+          scale: about 1 for the target's own view under fog and contrast, at most ~0.6 elsewhere;
+        - *geometry*: ``est`` (the estimate made at this view) puts the target here, rounded to ``(0, 0)``,
+          with at least ``verify_inliers`` inliers.
+
+        Accept when the colours match, i.e. colour at least ``verify_colour`` or opponent colour at least
+        ``verify_opponent``, the mean colours are the same hue up to a gain (:func:`hue_residual` at most
+        ``verify_hue``) and their chromaticities differ by at most ``verify_chroma`` (1: off), and the
+        content matches: structure at least ``verify_thresh``; or, with the geometry, structure at least
+        ``verify_thresh_geo``; or the geometry *and* opponent colour at least ``verify_opponent`` (two
+        independent checks that a washed-out target, whose structure score falls to ~0.1, still passes).
+        The colour correlation alone needs 0.35: the mirror faces of a flat-coloured cube (the same edges,
+        other colours) reach 0.30 with up to 15 inliers, while their opponent colour stays below 0.45, so
+        a fogged view whose colour correlation falls to 0.2-0.35 passes on its opponent colour instead.
+        ``score`` ranks candidates (the structure score, minus 1 when the colours do not match)."""
         tgt: _Target = s.target
         score = structure_score(structure_template(view), tgt.template)
+        opp_ok = photometric_score(opponent_template(view), tgt.opp_layout) >= self.verify_opponent
         colour_ok = (
-            float(np.abs(mean_chromaticity(view) - tgt.chroma).max()) <= self.verify_chroma
+            (opp_ok or photometric_score(colour_template(view), tgt.colour) >= self.verify_colour)
+            and float(np.abs(mean_chromaticity(view) - tgt.chroma).max()) <= self.verify_chroma
             and hue_residual(tgt.opponent, opponent_mean(view)) <= self.verify_hue
         )
-        return (score >= self.verify_thresh and colour_ok), (score if colour_ok else score - 1.0)
+        here = est is not None and est.valid and est.inliers >= self.verify_inliers and est.rounded() == (0, 0)
+        content_ok = score >= self.verify_thresh or (here and (score >= self.verify_thresh_geo or opp_ok))
+        return (content_ok and colour_ok), (score if colour_ok else score - 1.0)
 
     def _pitch_range(self, s: _RotSlot) -> tuple[int, int]:
         """Relative pitches that may be reachable (exact once a clamp showed a bound)."""
@@ -455,8 +513,13 @@ class RotationAgent(FeatureAgent):
         if arrived or s.since_est >= every:
             s.since_est = 0
             # the first look of an episode is at full size (easy and medium targets are often in view)
-            est = self.estimate(s, view, coarse=s.mode == SEARCH and s.looked and s.passes == 0)
+            coarse = s.mode == SEARCH and s.looked and s.passes == 0 and not s.full_search
+            est = self.estimate(s, view, coarse=coarse)
             s.looked = True
+            if coarse:  # a whole row of coarse looks without a valid estimate: search at full size
+                s.blind = 0 if est.valid else s.blind + 1
+                row_checks = -(-(360 - int(round(self.fov / 3))) // self.sweep_check_every)
+                s.full_search = s.blind >= row_checks
             s.last_est = est
             if s.mode == SEARCH:  # remember the best-looking view, the answer if nothing matches
                 score = self.verify(s, view)[1]
@@ -467,7 +530,7 @@ class RotationAgent(FeatureAgent):
                 cand = (s.pose_p + dp, _wrap(s.pose_y + dy))
                 if (dp, dy) == (0, 0):
                     if self._usable(s, cand) or arrived:
-                        ok, score = self.verify(s, view)
+                        ok, score = self.verify(s, view, est)
                         if ok:
                             return self._refine(s, view, start=True)
                         self._reject(s, score)
@@ -483,7 +546,7 @@ class RotationAgent(FeatureAgent):
                     if s.arrivals >= self.max_arrivals:
                         arrived = True  # decide here
             if arrived:
-                ok, score = self.verify(s, view)
+                ok, score = self.verify(s, view, est)
                 if ok:
                     return self._refine(s, view, start=True)
                 self._reject(s, score)
@@ -492,30 +555,21 @@ class RotationAgent(FeatureAgent):
         return self._search_move(s, view)
 
     def _refine(self, s: _RotSlot, view: np.ndarray, start: bool = False) -> int:
-        """Verified, but the view is not the exact target (a corrupted target, or a rounding off by
-        one) and the estimate of this step is ambiguous (a fractional part within ``REFINE_MARGIN`` of
-        0.5) or missing: hill-climb :func:`photometric_score` at ``REFINE_SCALE`` over the one-degree
-        neighbours, scoring every pose visited once, then stop on the best."""
-        est = s.last_est
-        if start and (
-            not self.refine
-            or (
-                est is not None
-                and est.valid
-                and est.rounded() == (0, 0)
-                and abs(est.dpitch - round(est.dpitch)) < 0.5 - REFINE_MARGIN
-                and abs(est.dyaw - round(est.dyaw)) < 0.5 - REFINE_MARGIN
-            )
-        ):
-            return STOP  # the estimate is clear about this pose
+        """Verified, but the view is not the exact target (a corrupted target, or an estimate off by a
+        degree; a byte-identical view stops before this is called): hill-climb a fine
+        :func:`structure_score` (``REFINE_SCALE``: 1 degree ~ 1 pixel) over the one-degree neighbours,
+        scoring every pose visited once, then stop on the best. A confident estimate is no reason to
+        skip it: blur and a corrupted target bias estimates by a degree or two."""
+        if start and not self.refine:
+            return STOP
         tgt: _Target = s.target
         if tgt.fine is None:
-            tgt.fine = photometric_template(tgt.image, REFINE_SCALE)
+            tgt.fine = structure_template(tgt.image, 1, REFINE_SIGMA, REFINE_SCALE)
         pose = (s.pose_p, s.pose_y)
         if start:
             s.mode, s.scores, s.queue = REFINE, {}, []
         if pose not in s.scores:
-            s.scores[pose] = photometric_score(photometric_template(view, REFINE_SCALE), tgt.fine)
+            s.scores[pose] = structure_score(structure_template(view, 1, REFINE_SIGMA, REFINE_SCALE), tgt.fine)
             best = max(s.scores, key=s.scores.get)
             if best == pose:  # a new best: score its neighbours
                 lo, hi = self._pitch_range(s)

@@ -164,16 +164,8 @@ def run_episodes(
     device = torch.device(env.device)
     runtime = Runtime()
     records: list[dict[str, Any]] = []
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=total, desc=desc or getattr(agent, "name", "eval"), unit="ep", dynamic_ncols=True, leave=True,
-            file=progress_stream, mininterval=0.5,
-        )
+    bar = _EpisodeBar(total, desc or getattr(agent, "name", "eval"), progress_stream) if progress else None
     t_start = time.perf_counter()
-    t_shown = t_start
     try:
         obs = env.reset()
         while True:
@@ -181,39 +173,10 @@ def run_episodes(
             n_active = int(active.sum())
             if n_active == 0 or (max_episodes is not None and len(records) >= max_episodes):
                 break
-            new_ids = torch.nonzero(env.new_episode & active).flatten().tolist()
-            if new_ids:
-                agent.reset(new_ids, [env.episodes[i] for i in new_ids])
-
-            t0 = time.perf_counter()
-            actions = agent.act(obs)
-            _sync(device)
-            runtime.agent_seconds += time.perf_counter() - t0
-            runtime.agent_decisions += n_active
-            for cb in callbacks:
-                cb(env, actions)
-
-            t0 = time.perf_counter()
-            obs, _, _, infos = env.step(actions)
-            _sync(device)
-            runtime.env_seconds += time.perf_counter() - t0
-            runtime.env_steps += n_active
-
-            # slots whose source ran out: idle the agent there (no more work for those slots)
-            idle = torch.nonzero(active & ~env.active).flatten().tolist()
-            if idle:
-                agent.reset(idle, [None] * len(idle))
-            finished = [info for info in infos if info is not None]
-            if finished:
-                records.extend(finished)
+            obs, finished = _step(env, agent, obs, active, n_active, callbacks, runtime, device)
+            records.extend(finished)
             if bar is not None:
-                now = time.perf_counter()
-                if finished or now - t_shown >= 0.5:
-                    t_shown = now
-                    rate = runtime.env_steps / max(now - t_start, 1e-9)
-                    bar.set_postfix_str(f"steps={runtime.env_steps} ({rate:.0f}/s)", refresh=False)
-                    bar.update(len(finished))
-                    bar.refresh()
+                bar.show(len(finished), runtime.env_steps)
     finally:
         if bar is not None:
             bar.close()
@@ -223,3 +186,54 @@ def run_episodes(
     runtime.episodes = len(records)
     runtime.wall_seconds = time.perf_counter() - t_start
     return records, runtime
+
+
+def _step(env: Any, agent: Any, obs: Any, active: torch.Tensor, n_active: int, callbacks: Sequence[StepCallback],
+          runtime: Runtime, device: torch.device) -> tuple[Any, list[dict[str, Any]]]:
+    """One step of every running slot: reset the agent where episodes start, time its decision and the
+    environment's step, idle the agent where the source ran out; returns the new observation and the records
+    of the episodes that finished."""
+    new_ids = torch.nonzero(env.new_episode & active).flatten().tolist()
+    if new_ids:
+        agent.reset(new_ids, [env.episodes[i] for i in new_ids])
+    t0 = time.perf_counter()
+    actions = agent.act(obs)
+    _sync(device)
+    runtime.agent_seconds += time.perf_counter() - t0
+    runtime.agent_decisions += n_active
+    for cb in callbacks:
+        cb(env, actions)
+    t0 = time.perf_counter()
+    obs, _, _, infos = env.step(actions)
+    _sync(device)
+    runtime.env_seconds += time.perf_counter() - t0
+    runtime.env_steps += n_active
+    # slots whose source ran out: idle the agent there (no more work for those slots)
+    idle = torch.nonzero(active & ~env.active).flatten().tolist()
+    if idle:
+        agent.reset(idle, [None] * len(idle))
+    return obs, [info for info in infos if info is not None]
+
+
+class _EpisodeBar:
+    """tqdm bar of finished episodes with the environment steps so far and their rate, refreshed at least
+    every 0.5 s (long episodes show movement before the first one ends)."""
+
+    def __init__(self, total: int, desc: str, stream: Any) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total, desc=desc, unit="ep", dynamic_ncols=True, leave=True, file=stream,
+                        mininterval=0.5)
+        self.t_start = self.t_shown = time.perf_counter()
+
+    def show(self, finished: int, env_steps: int) -> None:
+        now = time.perf_counter()
+        if finished or now - self.t_shown >= 0.5:
+            self.t_shown = now
+            rate = env_steps / max(now - self.t_start, 1e-9)
+            self.bar.set_postfix_str(f"steps={env_steps} ({rate:.0f}/s)", refresh=False)
+            self.bar.update(finished)
+            self.bar.refresh()
+
+    def close(self) -> None:
+        self.bar.close()
