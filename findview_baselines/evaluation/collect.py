@@ -146,11 +146,17 @@ def format_threshold(x: float) -> str:
 
 
 def _load_config(run_dir: Path) -> dict[str, Any] | None:
+    """A run's config: the resolved one ``tools/eval.py`` writes (``config_resolved.yaml``: values, so runs made
+    from YAML files that spell the same value differently, ``${sim.fov}`` or ``90``, compare equal), else Hydra's
+    ``.hydra/config.yaml`` as composed (unresolved: its run-name resolvers exist only inside the tool)."""
+    from omegaconf import OmegaConf
+
+    resolved = run_dir / "config_resolved.yaml"
+    if resolved.is_file():
+        return OmegaConf.to_container(OmegaConf.load(resolved), resolve=False)  # type: ignore[return-value]
     cfg_file = run_dir / ".hydra" / "config.yaml"
     if not cfg_file.is_file():
         return None
-    from omegaconf import OmegaConf
-
     return OmegaConf.to_container(OmegaConf.load(cfg_file), resolve=False)  # type: ignore[return-value]
 
 
