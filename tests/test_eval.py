@@ -228,7 +228,11 @@ def test_ctrl_c_writes_nothing(folder_ds, tmp_path):
     out = tmp_path / "interrupted"
     cmd = [PY, str(REPO / "tools" / "eval.py"), "agent=random", *ds_args(folder_ds), *SMALL, "num_envs=2",
            f"episodes={big}", f"hydra.run.dir={out}"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # a Ctrl-C reaches the tool as SIGINT with its default action, also when this test runs in a background job
+    # (a non-interactive shell starts those with SIGINT ignored, and Python then keeps ignoring it)
+    restore_sigint = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=restore_sigint)
     try:
         deadline = time.time() + 60
         for line in proc.stdout:  # wait until the episodes run
