@@ -55,17 +55,26 @@ STRUCT_SCALE = 2  # the content check normalises at 1/2 size ...
 STRUCT_SIGMA = 6.0  # ... with this window (pixels at 1/2 size), then compares at 1/4 size (blur 1 pixel)
 
 
+def _downsampled(hwc: np.ndarray, scale: int) -> np.ndarray:
+    """``(H, W, C)`` -> ``(H / scale, W / scale, C)`` by area averaging (at least one pixel per axis)."""
+    h, w = hwc.shape[:2]
+    return cv2.resize(hwc, (max(1, w // scale), max(1, h // scale)), interpolation=cv2.INTER_AREA)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    """``(H, W, C)`` float32 with each channel's mean removed (in place) and the joint unit norm; zeros when
+    nothing is left (a flat image)."""
+    x -= x.reshape(-1, x.shape[-1]).mean(axis=0)
+    n = float(np.sqrt((x * x).sum()))
+    return x / n if n > 1e-3 else np.zeros_like(x)
+
+
 def photometric_template(image: np.ndarray, scale: int = VERIFY_SCALE, sigma: float = VERIFY_SIGMA) -> np.ndarray:
     """The ``(3, H, W)`` uint8 RGB image as the check sees it: downsampled ``scale`` times (area
     average), blurred (``sigma``, pixels of the downsampled image), per-channel mean removed, scaled to
     unit norm over all channels. Returns ``(H / scale, W / scale, 3)`` float32 (zeros for a flat image)."""
-    hwc = chw_to_hwc(image)
-    h, w = hwc.shape[:2]
-    small = cv2.resize(hwc, (max(1, w // scale), max(1, h // scale)), interpolation=cv2.INTER_AREA)
-    x = cv2.GaussianBlur(small.astype(np.float32), (0, 0), sigma)
-    x -= x.reshape(-1, 3).mean(axis=0)
-    n = float(np.sqrt((x * x).sum()))
-    return x / n if n > 1e-3 else np.zeros_like(x)
+    x = cv2.GaussianBlur(_downsampled(chw_to_hwc(image), scale).astype(np.float32), (0, 0), sigma)
+    return _unit(x)
 
 
 def mean_chromaticity(image: np.ndarray) -> np.ndarray:
@@ -117,12 +126,11 @@ def structure_template(
     ``out`` more times, blurred (``blur`` pixels), zero mean, unit norm. Returns float32 ``(H / (scale
     out), W / (scale out))``; zeros for a flat image."""
     g = chw_to_hwc(image).astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
-    h, w = g.shape
     if scale > 1:
-        g = cv2.resize(g, (max(1, w // scale), max(1, h // scale)), interpolation=cv2.INTER_AREA)
+        g = _downsampled(g, scale)
     z = normalize_contrast(g, sigma)
     if out > 1:
-        z = cv2.resize(z, (max(1, z.shape[1] // out), max(1, z.shape[0] // out)), interpolation=cv2.INTER_AREA)
+        z = _downsampled(z, out)
     if blur > 0:
         z = cv2.GaussianBlur(z, (0, 0), blur)
     z = z - float(z.mean())
@@ -130,10 +138,9 @@ def structure_template(
     return z / n if n > 1e-6 else np.zeros_like(z)
 
 
-def structure_score(a: np.ndarray, b: np.ndarray) -> float:
-    """Normalised cross-correlation of two :func:`structure_template` outputs, in ``[-1, 1]`` (1: the
-    same picture up to a gain, an offset and a smooth additive field)."""
-    return float((a * b).sum())
+#: normalised cross-correlation of two :func:`structure_template` outputs, in ``[-1, 1]`` (1: the same picture up to
+#: a gain, an offset and a smooth additive field): the same dot product of unit templates as :func:`photometric_score`
+structure_score = photometric_score
 
 
 def opponent_mean(image: np.ndarray) -> np.ndarray:
@@ -162,14 +169,8 @@ def colour_template(image: np.ndarray, scale: int = VERIFY_SCALE, highpass: floa
     (minus its Gaussian blur of ``highpass`` pixels at the downsampled size) before the mean removal and
     the joint unit norm: smooth additive fields (fog) drop out, colour edges stay. Compare two with
     :func:`photometric_score`. Returns ``(H / scale, W / scale, 3)`` float32 (zeros for a flat image)."""
-    hwc = chw_to_hwc(image)
-    h, w = hwc.shape[:2]
-    small = cv2.resize(hwc, (max(1, w // scale), max(1, h // scale)), interpolation=cv2.INTER_AREA)
-    x = cv2.GaussianBlur(small.astype(np.float32), (0, 0), VERIFY_SIGMA)
-    x = x - cv2.GaussianBlur(x, (0, 0), highpass)
-    x -= x.reshape(-1, 3).mean(axis=0)
-    n = float(np.sqrt((x * x).sum()))
-    return x / n if n > 1e-3 else np.zeros_like(x)
+    x = cv2.GaussianBlur(_downsampled(chw_to_hwc(image), scale).astype(np.float32), (0, 0), VERIFY_SIGMA)
+    return _unit(x - cv2.GaussianBlur(x, (0, 0), highpass))
 
 
 def opponent_template(image: np.ndarray, scale: int = VERIFY_SCALE, highpass: float = 4.0) -> np.ndarray:
@@ -184,12 +185,7 @@ def opponent_template(image: np.ndarray, scale: int = VERIFY_SCALE, highpass: fl
     degree off about 0.9, another place or the mirror face of the test cube (the same edges in other
     colours) 0.6 at most. Noise, JPEG's chroma subsampling and blur lower it for the right view too, so
     it only ever *adds* evidence (see ``RotationAgent.verify``)."""
-    hwc = chw_to_hwc(image).astype(np.float32)  # float before the resize: fog leaves small differences
-    h, w = hwc.shape[:2]
-    small = cv2.resize(hwc, (max(1, w // scale), max(1, h // scale)), interpolation=cv2.INTER_AREA)
+    small = _downsampled(chw_to_hwc(image).astype(np.float32), scale)  # float first: fog leaves small differences
     x = np.stack([small[..., 0] - small[..., 1], small[..., 1] - small[..., 2]], axis=-1)
     x = cv2.GaussianBlur(x, (0, 0), VERIFY_SIGMA)
-    x = x - cv2.GaussianBlur(x, (0, 0), highpass)
-    x -= x.reshape(-1, 2).mean(axis=0)
-    n = float(np.sqrt((x * x).sum()))
-    return x / n if n > 1e-3 else np.zeros_like(x)
+    return _unit(x - cv2.GaussianBlur(x, (0, 0), highpass))

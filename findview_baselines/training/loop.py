@@ -5,7 +5,7 @@ the run is done or a stop is requested, and hands every update's stats to the :c
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -46,7 +46,6 @@ class RunContext:
     validated_at: int = -1
     failed: bool = False
     """The loop raised: under torchrun no more collectives (the other ranks may be gone)."""
-    extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def latest_path(self) -> Path:

@@ -38,7 +38,7 @@ import signal as signal_module
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from findview_baselines.config import TrainConfig, typed_config
 from findview_baselines.errors import Interrupted, UserError
@@ -169,9 +169,10 @@ def config_dict(cfg: TrainConfig) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-def _start(ctx: RunContext, cfg: TrainConfig, resume_state: dict[str, Any] | None, rank_seed: int) -> None:
+def _start(ctx: RunContext, cfg: TrainConfig, resume_state: dict[str, Any] | None, rank_seed: int) -> Callable[[], None]:
     """Put the trainer where this session starts: a resumed state (exact or re-sharded), or fresh weights
-    (``init_from``) and fresh episodes."""
+    (``init_from``) and fresh episodes. Returns what sets the global RNGs once everything is built (building
+    consumes random numbers): the saved states of an exact resume, a re-seed of a re-sharded one."""
     algo, latest = ctx.algo, ctx.latest_path
     if resume_state is None:
         if cfg.init_from:
@@ -179,7 +180,7 @@ def _start(ctx: RunContext, cfg: TrainConfig, resume_state: dict[str, Any] | Non
             log.info("initialised the weights from %s (update %s of that run); fresh optimizer",
                      cfg.init_from, state["update"])
         algo.start()
-        return
+        return lambda: None
     world = distributed.world_size()
     rank_state, exact = rank_trainer_state(resume_state["trainer"], distributed.rank(), world, cfg.trainer.seed)
     try:
@@ -195,10 +196,8 @@ def _start(ctx: RunContext, cfg: TrainConfig, resume_state: dict[str, Any] | Non
     log.info("resumed %s at update %d (%d env steps)%s", ctx.run_dir, algo.update, algo.env_steps,
              "" if exact else f"; saved by {saved_world} rank(s), now {world}: weights, optimizer and schedule "
                               f"continue, environments restart with re-seeded episodes")
-    if exact:
-        ctx.extra["restore_rng"] = rank_state["rng"]
-    else:
-        ctx.extra["reseed"] = rank_seed
+    rng = rank_state["rng"]
+    return (lambda: restore_rng_state(rng)) if exact else (lambda: seed_everything(rank_seed))
 
 
 def _callbacks(ctx: RunContext, cfg: TrainConfig, val_env: Any, show_progress: bool, resumed: bool) -> list[Callback]:
@@ -253,13 +252,10 @@ def _train_locked(cfg: TrainConfig, run_dir: Path, stop: Any, progress: bool | N
     distributed.broadcast_modules([algo.policy, *algo.extra_modules()])
     ctx = RunContext(algo, config, run_dir, t.num_updates)
     ramp = _severity_ramp(cfg, algo.env, int(resume_state["update"]) if resume_state is not None else 0)
-    _start(ctx, cfg, resume_state, rank_seed)
+    set_rngs = _start(ctx, cfg, resume_state, rank_seed)
     if main:
         write_text(run_dir / "resolved_config.yaml", OmegaConf.to_yaml(OmegaConf.create(config)))
-    if "restore_rng" in ctx.extra:
-        restore_rng_state(ctx.extra["restore_rng"])  # last: building the run consumed random numbers
-    elif "reseed" in ctx.extra:
-        seed_everything(ctx.extra["reseed"])
+    set_rngs()  # last: building the run consumed random numbers
     ctx.stop_at = t.num_updates if t.stop_after is None else min(t.num_updates, algo.update + t.stop_after)
     ctx.session_start_update = algo.update
     if algo.update >= t.num_updates and main:
