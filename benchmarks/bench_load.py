@@ -1,8 +1,14 @@
 """CPU load immunity: every CPU path timed alone and next to a competing CPU load, and the slowdown.
 
-    python benchmarks/bench_load.py                      # the default thread policy (findview.runtime)
-    python benchmarks/bench_load.py --load 2 --rounds 3
-    OMP_WAIT_POLICY=ACTIVE python benchmarks/bench_load.py --torch-threads 2    # torch's defaults, to compare
+    python benchmarks/bench_load.py                      # both import orders, the library's thread policy
+    python benchmarks/bench_load.py --order torch --load 2 --rounds 3
+    OMP_WAIT_POLICY=ACTIVE python benchmarks/bench_load.py --torch-threads 2    # a user's own settings
+
+Import orders (``--order``, default ``both``: one fresh process each): ``findview`` imports findview
+before torch (its environment defaults, ``OMP_WAIT_POLICY=PASSIVE`` and ``OPENBLAS_NUM_THREADS=1``, reach
+the runtimes); ``torch`` imports torch, numpy and cv2 first, as most scripts and notebooks do (those
+defaults come too late). Neither calls ``configure_threads`` unless ``--torch-threads`` is given: the
+thread counts are the ones the library's scopes choose (``findview/runtime.py``).
 
 Paths (each a fixed amount of work, timed in seconds):
 
@@ -39,8 +45,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import findview  # noqa: F401  (first: the thread policy's OMP_WAIT_POLICY before torch loads)
-from findview.runtime import configure_threads, wait_policy_effective
+# findview is imported in main(), after torch / numpy / cv2 when --order torch (see the module docstring)
 
 REPO = Path(__file__).resolve().parents[1]
 AGENTS = ("random", "orb", "sift", "rotation")
@@ -243,12 +248,34 @@ class CpuLoad:
         self.procs = []
 
 
+def run_both_orders(argv: list[str]) -> None:
+    """Run this script once per import order (fresh processes) and print both tables, then each order's worst."""
+    worst: dict[str, str] = {}
+    for order in ORDERS:
+        proc = subprocess.run([sys.executable, __file__, *argv, "--order", order], capture_output=True, text=True)
+        sys.stdout.write(f"\n## import order: {order} first\n\n{proc.stdout}")
+        if proc.returncode != 0:
+            sys.stderr.write(proc.stderr)
+            raise SystemExit(f"bench_load.py --order {order} failed (exit {proc.returncode})")
+        lines = [line for line in proc.stdout.splitlines() if line.startswith("worst slowdown")]
+        worst[order] = lines[-1] if lines else "(no result)"
+    print("\n" + "\n".join(f"{order} first: {line}" for order, line in worst.items()))
+
+
+#: import orders: ``findview`` (findview, then torch), ``torch`` (torch, numpy and cv2 first, as most scripts do)
+ORDERS = ("findview", "torch")
+
+
 def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--order", choices=(*ORDERS, "both"), default="both",
+                    help="import order of this process: findview first, torch (+ numpy, cv2) first, or both "
+                         "(one fresh process each; default)")
     ap.add_argument("--load", type=int, default=2, help="competing busy-loop processes (default 2)")
     ap.add_argument("--rounds", type=int, default=2, help="quiet / loaded alternations (default 2)")
     ap.add_argument("--same-session", action="store_true", help="run the load in this process's session (see CpuLoad)")
-    ap.add_argument("--torch-threads", type=int, default=None, help="torch threads (default: the policy's, 1)")
+    ap.add_argument("--torch-threads", type=int, default=None,
+                    help="call configure_threads(n) first (default: not called; the library's scopes decide)")
     ap.add_argument("--opencv-threads", type=int, default=None, help="cv2.setNumThreads (default: left as is)")
     ap.add_argument("--paths", nargs="+", default=None, help="subset: control first_reset env_step agent:<name> ppo_update")
     ap.add_argument("--env-steps", type=int, default=40, help="env_step: steps of 16 envs per timing")
@@ -256,20 +283,32 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     ap.add_argument("--ppo-size", type=int, default=128, help="ppo_update: view size (square)")
     ap.add_argument("--ppo-envs", type=int, default=4)
     ap.add_argument("--ppo-steps", type=int, default=16)
+    argv = sys.argv[1:] if argv is None else argv
     args = ap.parse_args(argv)
-
-    import torch
+    if args.order == "both":
+        run_both_orders(argv)
+        return {}
+    if args.order == "torch":
+        import cv2  # noqa: F401
+        import numpy  # noqa: F401
+        import torch  # noqa: F401
+    import findview  # noqa: F401
+    from findview.runtime import blas_threads, compute_threads, configure_threads, wait_policy_effective
 
     import cv2
+    import torch
 
-    threads = configure_threads(args.torch_threads, args.opencv_threads)
+    if args.torch_threads is not None or args.opencv_threads is not None:
+        configure_threads(args.torch_threads, args.opencv_threads)
     autogroup = Path("/proc/sys/kernel/sched_autogroup_enabled")
     autogroup = autogroup.read_text().strip() if autogroup.is_file() else "n/a"
     print(
-        f"# CPU load immunity: {os.cpu_count()} cores, torch {torch.__version__}, {threads} torch thread(s), "
-        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')} (effective: {wait_policy_effective()}), "
-        f"{cv2.getNumThreads()} OpenCV thread(s), load = {args.load} x 'while True: pass' in "
-        f"{'this' if args.same_session else 'its own'} session (sched_autogroup_enabled={autogroup}), {args.rounds} rounds"
+        f"# CPU load immunity, {args.order} imported first: {os.cpu_count()} cores, torch {torch.__version__}, "
+        f"torch threads {torch.get_num_threads()} (heavy work: {compute_threads()}), OpenBLAS threads "
+        f"{blas_threads() or 'n/a'}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')} (effective: "
+        f"{wait_policy_effective()}), {cv2.getNumThreads()} OpenCV thread(s), load = {args.load} x 'while True: pass' "
+        f"in {'this' if args.same_session else 'its own'} session (sched_autogroup_enabled={autogroup}), "
+        f"{args.rounds} rounds"
     )
     with tempfile.TemporaryDirectory() as tmp:
         files = panorama_files(Path(tmp))

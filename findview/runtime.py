@@ -1,62 +1,85 @@
-"""The CPU thread policy of findview: fast on an idle machine, and immune to a busy one.
+"""The CPU thread policy of findview: fast on an idle machine, immune to a busy one, whatever the import order.
 
-Why: torch runs its CPU kernels in an OpenMP thread team. By default (GNU OpenMP, the runtime of
-the torch wheels on Linux) the team's threads *spin-wait* between parallel regions. When other
-processes compete for the cores, a spinning thread holds a core the next region's threads need, and
-a handful of tiny torch ops on one 256x256 view (the agents' former RGB -> gray conversion) cost
-milliseconds to a hundred milliseconds per call instead of a fraction of a millisecond.
+This module is the one place where findview's thread settings and their knobs are decided.
 
-The policy (documented defaults, each overridable):
+Why: torch runs its CPU kernels in an OpenMP thread team, numpy its matrix products in OpenBLAS threads,
+OpenCV its own pool. By default the OpenMP team (GNU OpenMP, the runtime of the torch wheels on Linux)
+and OpenBLAS's threads *spin-wait* between parallel regions. When other processes compete for the cores,
+a spinning thread holds a core that the next region's threads need, and a handful of small ops on one
+256x256 view cost milliseconds to a hundred milliseconds per call instead of a fraction of a millisecond.
 
-1. ``OMP_WAIT_POLICY=PASSIVE``: OpenMP threads sleep instead of spinning when idle. The OpenMP
-   runtime reads this variable once, when torch loads it, so it must be in the environment *before*
-   ``import torch``: ``import findview`` sets it (``os.environ.setdefault``, so a value the user
-   exported wins) when torch is not imported yet; the tools in ``tools/`` import ``findview``
-   before torch. Setting it after torch was imported has no effect (measured: same spin-wait cost);
-   :func:`configure_threads` then warns if it is asked for more than one torch thread.
-   The variable is inherited by child processes (data workers, subprocess-based tools).
-2. ``torch.set_num_threads(1)`` unless a tool is given another count (``torch_threads`` in the
-   train / eval configs). findview's CPU work is many small ops (per-env bookkeeping, per-view
-   conversions, small-batch inference) where one thread is as fast as two on an idle machine and
-   never waits for a descheduled team member on a busy one. Rendering (OpenCV ``remap``) and the
-   feature-based agents (OpenCV, their own thread pool) do not use torch's threads. Give CPU
-   training of the full-size network more threads explicitly if the cores are free.
-3. ``OPENBLAS_NUM_THREADS=1`` (set with the wait policy, before numpy loads, unless the user set a
-   value): numpy's matrix products run inside the agents' own thread pool, where extra BLAS threads
-   only oversubscribe the cores.
-4. OpenCV's own thread count is left as it is (its thread pool does not show the spin-wait problem);
-   pass ``opencv_threads`` to change it.
+The policy: **the thread count is chosen where the work is done**, for two kinds of work.
 
-Who applies it: ``import findview`` does step 1 (nothing else: importing a library must not change
-torch's global thread count); every tool in ``tools/`` calls :func:`configure_threads` with its
-config's ``torch_threads`` (steps 2 and 3); code using findview as a library calls it once at start-up
-(``configure_threads()`` for the defaults). GPU runs are unaffected: the policy only concerns
-host-side torch ops.
+1. *Light work*, many small ops: the simulator (rendering, first reset, the environment's bookkeeping),
+   the corruptions, the rule-based agents. It runs inside :func:`light_work`: one torch thread and one
+   OpenBLAS thread, so no thread team exists to spin and nothing waits for a descheduled team member
+   (one thread is as fast as two on these ops on an idle machine). OpenCV keeps its own pool (it sleeps
+   when idle). ``FindViewEnv.reset`` / ``step``, ``Simulator.render``, ``corrupt`` and the feature
+   agents' ``reset`` / ``act`` enter it themselves, so a user script gets it without doing anything.
+2. *Heavy work*, large convolutions and matrix products: the PPO and DAgger updates and rollouts, and the
+   learned agents' forward passes. It runs inside :func:`heavy_work`: :func:`compute_threads` torch
+   threads (the cores this process may use, unless told otherwise).
 
-Measured on a 2-core machine shared with other jobs (``benchmarks/RESULTS.md``, "CPU load immunity"):
-the torch RGB -> gray conversion of one 256x256 view took 103 ms per call (median) with torch's
-defaults (2 threads, spin-waiting), 0.7 ms with PASSIVE set by ``import findview``, 0.5 ms on 1 thread;
-setting PASSIVE after ``import torch`` changed nothing (104 ms).
+Each scope sets the counts on entry (only those that differ) and restores the previous ones on exit, so
+code outside them keeps the user's settings. Both are context managers and decorators; they nest.
+
+Knobs, in order of precedence, for the heavy work's thread count:
+
+- ``torch_threads`` in the train / eval configs (``trainer.torch_threads``), or
+  :func:`configure_threads` ``(torch_threads=n)`` in a script;
+- the environment variable ``FINDVIEW_COMPUTE_THREADS``;
+- otherwise every core in the process's CPU affinity mask (``os.sched_getaffinity``).
+
+Also, as a second line of defence when findview is imported before torch and numpy:
+``import findview`` puts ``OMP_WAIT_POLICY=PASSIVE`` (OpenMP threads sleep instead of spinning when
+idle) and ``OPENBLAS_NUM_THREADS=1`` into the environment, unless the user set them. Both are read
+once, when torch / numpy load their runtimes, and reach child processes; after that they do nothing
+(:func:`wait_policy_effective` tells). The scopes above do not depend on them.
+
+Measured on a 2-core machine shared with other jobs (``benchmarks/RESULTS.md``, "CPU load immunity" and
+"Import order"): with torch imported first and two competing processes, the first reset of 16
+environments took 0.30 s against 0.05 s before this policy, the sift agent ran at 20 decisions/s against
+51 with findview imported first.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT_TORCH_THREADS", "WAIT_POLICY", "set_wait_policy", "wait_policy_effective", "configure_threads"]
+__all__ = [
+    "DEFAULT_TORCH_THREADS",
+    "COMPUTE_THREADS_ENV",
+    "WAIT_POLICY",
+    "set_wait_policy",
+    "wait_policy_effective",
+    "configure_threads",
+    "compute_threads",
+    "light_work",
+    "heavy_work",
+    "blas_threads",
+]
 
-#: torch intra-op threads when none is given (see the module docstring)
+#: torch's global intra-op thread count set by the tools (work outside the scopes: glue code)
 DEFAULT_TORCH_THREADS = 1
+#: environment variable giving the heavy work's torch thread count (see the module docstring)
+COMPUTE_THREADS_ENV = "FINDVIEW_COMPUTE_THREADS"
 #: the OpenMP wait policy findview asks for
 WAIT_POLICY = "PASSIVE"
 
 # the OMP_WAIT_POLICY in the environment when findview first saw torch loaded (None: not loaded yet)
 _policy_at_torch_load: str | None = None
 _warned = False
+# heavy work's torch thread count set by configure_threads (None: COMPUTE_THREADS_ENV or the cores)
+_compute_threads: int | None = None
+# (get, set) thread-count functions of every OpenBLAS loaded in this process, found once numpy is loaded
+_blas_controls: list[tuple[Callable[[], int], Callable[[int], None]]] | None = None
 
 
 def set_wait_policy() -> bool:
@@ -91,16 +114,18 @@ def wait_policy_effective() -> bool:
 
 
 def configure_threads(torch_threads: int | None = None, opencv_threads: int | None = None) -> int:
-    """Apply the thread policy of this module; returns the torch intra-op thread count in effect.
+    """Apply the thread policy of this module; returns torch's global intra-op thread count now in effect.
 
     Args:
-        torch_threads: torch intra-op threads (``None`` or ``0``: :data:`DEFAULT_TORCH_THREADS`).
+        torch_threads: the heavy work's torch threads (:func:`heavy_work`) and torch's global count;
+            ``None`` or ``0``: heavy work on :func:`compute_threads`'s default, global count
+            :data:`DEFAULT_TORCH_THREADS`.
         opencv_threads: ``cv2.setNumThreads`` value (``None``: leave OpenCV as it is).
 
     Raises:
         ValueError: a negative thread count.
     """
-    global _warned
+    global _warned, _compute_threads
     if torch_threads is not None and int(torch_threads) < 0:
         raise ValueError(f"torch_threads must be >= 0 (0 = the default {DEFAULT_TORCH_THREADS}), got {torch_threads}")
     if opencv_threads is not None and int(opencv_threads) < 0:
@@ -108,6 +133,7 @@ def configure_threads(torch_threads: int | None = None, opencv_threads: int | No
     set_wait_policy()
     import torch
 
+    _compute_threads = int(torch_threads) if torch_threads else None
     n = int(torch_threads) if torch_threads else DEFAULT_TORCH_THREADS
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)
@@ -129,3 +155,93 @@ def configure_threads(torch_threads: int | None = None, opencv_threads: int | No
 
         cv2.setNumThreads(int(opencv_threads))
     return n
+
+
+def compute_threads() -> int:
+    """The heavy work's torch thread count: :func:`configure_threads`'s ``torch_threads``, else
+    ``$FINDVIEW_COMPUTE_THREADS``, else the number of cores in this process's CPU affinity mask.
+
+    Raises:
+        ValueError: ``$FINDVIEW_COMPUTE_THREADS`` is not a positive integer.
+    """
+    if _compute_threads:
+        return _compute_threads
+    value = os.environ.get(COMPUTE_THREADS_ENV, "").strip()
+    if value:
+        if not value.isdigit() or int(value) < 1:
+            raise ValueError(f"{COMPUTE_THREADS_ENV}={value!r}: expected a positive integer (torch threads)")
+        return int(value)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _find_blas() -> list[tuple[Callable[[], int], Callable[[int], None]]]:
+    """The thread-count functions of the OpenBLAS libraries loaded in this process (numpy's, torch's).
+
+    Found from ``/proc/self/maps`` once numpy is loaded (Linux; elsewhere: none, and the scopes leave BLAS
+    alone). The symbol names are OpenBLAS's own, with the prefix / suffix of numpy's ``scipy_openblas``
+    build.
+    """
+    global _blas_controls
+    if _blas_controls is not None:
+        return _blas_controls
+    if "numpy" not in sys.modules:
+        return []
+    found: list[tuple[Callable[[], int], Callable[[int], None]]] = []
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = sorted({line.split()[-1] for line in maps if "openblas" in line.rsplit("/", 1)[-1].lower()})
+    except OSError:
+        paths = []
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix, suffix in (("scipy_openblas", "64_"), ("scipy_openblas", ""), ("openblas", "64_"), ("openblas", "")):
+            get = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
+            put = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
+            if get is not None and put is not None:
+                get.restype, put.argtypes = ctypes.c_int, [ctypes.c_int]
+                found.append((get, put))
+                break
+    _blas_controls = found
+    return found
+
+
+def blas_threads() -> list[int]:
+    """The thread count of each OpenBLAS loaded in this process (empty: none found)."""
+    return [int(get()) for get, _ in _find_blas()]
+
+
+@contextmanager
+def _threads(torch_threads: int, blas: int | None) -> Iterator[None]:
+    import torch
+
+    before = torch.get_num_threads()
+    if before != torch_threads:
+        torch.set_num_threads(torch_threads)
+    blas_before = [(put, get()) for get, put in _find_blas()] if blas is not None else []
+    for put, count in blas_before:
+        if count != blas:
+            put(blas)
+    try:
+        yield
+    finally:
+        if before != torch_threads:
+            torch.set_num_threads(before)
+        for put, count in blas_before:
+            if count != blas:
+                put(count)
+
+
+def light_work() -> "contextmanager":
+    """Scope (context manager or decorator) for many small ops: one torch thread, one OpenBLAS thread."""
+    return _threads(1, 1)
+
+
+def heavy_work() -> "contextmanager":
+    """Scope (context manager or decorator) for large convolutions: :func:`compute_threads` torch threads."""
+    return _threads(compute_threads(), None)

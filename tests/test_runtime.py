@@ -60,3 +60,122 @@ def test_bad_thread_count():
 
     with pytest.raises(ValueError, match="torch_threads"):
         configure_threads(-1)
+
+
+# ------------------------------------------------------------------ thread counts chosen where the work is done
+SCOPES_PROBE = """
+import json, sys
+import numpy, torch, cv2  # before findview, as most user scripts do: findview's environment defaults come too late
+torch.set_num_threads(2)
+import findview.runtime as runtime
+from findview.runtime import blas_threads
+blas_before = blas_threads()
+for _, put in runtime._find_blas():
+    put(2)
+seen = {}
+
+def spy(owner, name, key):
+    real = getattr(owner, name)
+    def wrapped(*a, **k):
+        seen.setdefault(key, []).append((torch.get_num_threads(), blas_threads()))
+        return real(*a, **k)
+    setattr(owner, name, wrapped)
+
+import numpy as np
+from findview.episode import Episode
+from findview.sim import PanoramaBank, Simulator
+from findview.sim import simulator as sim_module
+from findview.task import FindViewEnv, StaticEpisodeSource
+import findview.corruptions as corruptions
+from findview_baselines.rl import ppo as ppo_module
+import cv2
+path = sys.argv[1]
+cv2.imwrite(path, np.random.default_rng(0).integers(0, 255, (128, 256, 3), dtype=np.uint8))
+spy(sim_module.Simulator, "_render_opencv", "render")
+real_blur = corruptions._OPS["motion_blur"]
+def blur_spy(*a, **k):
+    seen.setdefault("corrupt", []).append((torch.get_num_threads(), blas_threads()))
+    return real_blur(*a, **k)
+corruptions._OPS["motion_blur"] = blur_spy
+spy(ppo_module.PPO, "_minibatch_terms", "ppo")
+bank = PanoramaBank("cpu", 64, min_slots=2, prefetch_workers=0)
+env = FindViewEnv(Simulator(bank, fov=90, height=40, width=40), StaticEpisodeSource(
+    [Episode(str(i), path, 0, 10 * i, 0, 0) for i in range(4)]), 2)
+env.reset(); env.step(torch.tensor([0, 2]))
+from findview.corruptions import corrupt
+corrupt(torch.zeros(2, 3, 40, 40, dtype=torch.uint8), "motion_blur", 3)
+from findview_baselines.config import PPOAgentConfig
+from findview_baselines.rl.policy import build_policy
+from findview_baselines.rl.ppo import PPO, PPOConfig
+from findview_baselines.rl.storage import RolloutStorage
+policy = build_policy(PPOAgentConfig(hidden_size=16), 40, 40)
+storage = RolloutStorage(2, 2, 40, 40, 16)
+storage.set_initial(env.reset())
+for _ in range(2):
+    obs, hidden, masks = storage.current()
+    with torch.no_grad():
+        a, lp, v, h = policy.act(obs, hidden, masks)
+    storage.insert(env.step(a)[0], h, a, lp, v, torch.zeros(2), torch.ones(2))
+storage.compute_returns(torch.zeros(2), 0.99, 0.95)
+PPO(policy, PPOConfig(rollout_steps=2, ppo_epochs=1)).update(storage)
+print(json.dumps({"seen": seen, "after": [torch.get_num_threads(), blas_threads()],
+                  "compute": runtime.compute_threads(), "blas_found": bool(runtime._find_blas())}))
+"""
+
+
+def test_hot_paths_choose_their_threads_whatever_the_import_order(tmp_path):
+    """torch, numpy and cv2 imported first, torch and OpenBLAS at 2 threads: rendering and corruptions run on
+    one torch and one BLAS thread, the PPO update on compute_threads(); the user's counts are back afterwards."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OPENBLAS_NUM_THREADS")}
+    env["FINDVIEW_COMPUTE_THREADS"] = "3"
+    proc = subprocess.run([sys.executable, "-c", SCOPES_PROBE, str(tmp_path / "pano.png")], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    blas_one = [1] * len(out["after"][1])
+    assert out["seen"]["render"] and all(seen == [1, blas_one] for seen in out["seen"]["render"])
+    assert out["seen"]["corrupt"] == [[1, blas_one]]
+    assert out["compute"] == 3 and out["seen"]["ppo"] and all(seen[0] == 3 for seen in out["seen"]["ppo"])
+    assert out["after"][0] == 2
+    if out["blas_found"]:  # numpy's OpenBLAS (Linux wheels): its count is back to the user's
+        assert out["after"][1] and set(out["after"][1]) == {2}
+
+
+def test_scopes_nest_and_restore(monkeypatch):
+    import numpy  # noqa: F401  (so that the BLAS controls can be found)
+    import torch
+
+    from findview import runtime
+
+    monkeypatch.setenv(runtime.COMPUTE_THREADS_ENV, "2")
+    before = torch.get_num_threads()
+    with runtime.light_work():
+        assert torch.get_num_threads() == 1 and set(runtime.blas_threads()) <= {1}
+        with runtime.heavy_work():
+            assert torch.get_num_threads() == 2
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+
+
+def test_compute_threads_knobs(monkeypatch):
+    import torch
+
+    from findview import runtime
+
+    monkeypatch.delenv(runtime.COMPUTE_THREADS_ENV, raising=False)
+    assert runtime.compute_threads() == len(os.sched_getaffinity(0))
+    monkeypatch.setenv(runtime.COMPUTE_THREADS_ENV, "5")
+    assert runtime.compute_threads() == 5
+    monkeypatch.setenv(runtime.COMPUTE_THREADS_ENV, "two")
+    with pytest.raises(ValueError, match="FINDVIEW_COMPUTE_THREADS='two'"):
+        runtime.compute_threads()
+    before = torch.get_num_threads()
+    try:
+        assert runtime.configure_threads(3) == 3 and runtime.compute_threads() == 3  # the config wins
+        runtime.configure_threads(None)
+        assert torch.get_num_threads() == runtime.DEFAULT_TORCH_THREADS
+        with pytest.raises(ValueError, match="two"):
+            runtime.compute_threads()  # back to the environment variable
+    finally:
+        runtime.configure_threads(None)
+        torch.set_num_threads(before)

@@ -22,6 +22,8 @@ from collections.abc import Callable, Iterable
 
 import torch
 
+from findview.runtime import light_work
+
 from . import blur, digital, noise, weather
 from ._common import device_generator
 from .weather import FROST_DIR, check_frost_textures, frost_textures_available, missing_frost_textures
@@ -151,6 +153,7 @@ def resolve_names(spec: str | Iterable[str] | None) -> tuple[str, ...]:
     return tuple(out)
 
 
+@light_work()
 def corrupt(
     images: torch.Tensor, name: str, severity: int, generator: torch.Generator | None = None
 ) -> torch.Tensor:

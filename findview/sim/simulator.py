@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import torch
 
+from findview.runtime import light_work
 from findview.sim.bank import PanoramaBank
 from findview.sim.equi2pers import MODES, _wrapped, sample_equirect, to_output_dtype, yaw0_points
 
@@ -70,6 +71,7 @@ class Simulator:
         backend: ``auto`` | ``opencv`` | ``torch`` (see module docstring).
     """
 
+    @light_work()
     def __init__(
         self,
         bank: PanoramaBank,
@@ -140,6 +142,7 @@ class Simulator:
             self._built[p] = True
         self._n_built += len(missing)
 
+    @light_work()
     def build_all_grids(self, equi_height: int) -> None:
         """Build every pitch's grid now (e.g. before timing steps) for panoramas ``equi_height`` high."""
         self._ensure_grids(list(range(2 * self.pitch_bound + 1)), int(equi_height))
@@ -149,6 +152,7 @@ class Simulator:
         """An ``(n, H, W, 3)`` uint8 buffer on the device for :meth:`render_into`."""
         return torch.zeros((n, self.height, self.width, 3), dtype=torch.uint8, device=self.device)
 
+    @light_work()
     def render(self, slots: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
         """Views ``(N, 3, H, W)`` uint8 for bank slots ``(N,)`` at integer ``pitch, yaw (N,)`` degrees.
 
@@ -158,6 +162,7 @@ class Simulator:
         self.render_into(out, torch.arange(out.shape[0], device=self.device), slots, pitch, yaw)
         return out.permute(0, 3, 1, 2)
 
+    @light_work()
     def render_into(
         self, out: torch.Tensor, rows: torch.Tensor, slots: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor,
         validate: bool = True,

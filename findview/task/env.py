@@ -17,6 +17,7 @@ import torch
 
 from findview.episode import Episode
 from findview.geometry import l1_distance, wrap_yaw
+from findview.runtime import light_work
 from findview.sim.simulator import Simulator
 from findview.task.actions import NUM_ACTIONS, Action
 from findview.task.rewards import RewardConfig, compute_reward
@@ -50,6 +51,7 @@ class FindViewEnv:
         prefetch: how many upcoming episodes' panoramas to decode in the background.
     """
 
+    @light_work()
     def __init__(
         self,
         simulator: Simulator,
@@ -113,16 +115,19 @@ class FindViewEnv:
         """
         return {"view": self.view, "target": self.target}
 
+    @light_work()
     def reset(self) -> dict[str, torch.Tensor]:
         """Start a fresh episode in every slot; returns the first observations."""
         self._start(list(range(self.num_envs)))
         return self.observations
 
+    @light_work()
     def reset_envs(self, env_ids: list[int]) -> dict[str, torch.Tensor]:
         """Start the next episodes in the given slots only (for ``auto_reset=False``)."""
         self._start(list(env_ids))
         return self.observations
 
+    @light_work()
     def step(self, actions: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, list[dict | None]]:
         """Apply ``actions (N,)`` (ids of :class:`Action`); returns ``obs, reward (N,), done (N,), infos``.
 

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from findview.episode import Episode
+from findview.runtime import light_work
 from findview_baselines.agents.base import STOP, Agent, check_keys, episode_rng, host_images, to_plain_dict
 
 __all__ = [
@@ -297,6 +298,7 @@ class FeatureAgent(Agent):
         raise NotImplementedError
 
     # machinery -----------------------------------------------------------------------------------
+    @light_work()
     def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
         """Start ``episodes`` in slots ``env_ids``; a ``None`` episode idles the slot (STOP, no work)."""
         super().reset(env_ids, episodes)
@@ -305,6 +307,7 @@ class FeatureAgent(Agent):
             s.done = ep is None
             self.slots[int(i)] = s
 
+    @light_work()
     def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         view, target = self._check_obs(obs)
         actions = np.full(self.num_envs, STOP, dtype=np.int64)

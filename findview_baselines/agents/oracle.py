@@ -10,6 +10,7 @@ import torch
 
 from findview.episode import Episode
 from findview.geometry import wrap_yaw
+from findview.runtime import light_work
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, Agent
 
 if TYPE_CHECKING:
@@ -63,6 +64,7 @@ class OracleAgent(Agent):
         """Factory for :func:`~findview_baselines.agents.make_agent` from the typed ``agent`` section."""
         return cls(num_envs, device, seed, order=cfg.order, pitch_bound=cfg.pitch_bound, step_deg=cfg.step_deg)
 
+    @light_work()
     def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
         super().reset(env_ids, episodes)
         for i, ep in zip(env_ids, episodes):
@@ -89,6 +91,7 @@ class OracleAgent(Agent):
             a = np.where(need_y, yaw_move, np.where(need_p, pitch_move, STOP))
         return np.where(self.done | ~self.has_episode, STOP, a).astype(np.int64)
 
+    @light_work()
     def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         view, _ = self._check_obs(obs)
         missing = np.flatnonzero(~self.has_episode & ~self.done).tolist()

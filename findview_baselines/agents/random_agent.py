@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from findview.episode import Episode
+from findview.runtime import light_work
 from findview_baselines.agents.base import NUM_ACTIONS, Agent
 
 if TYPE_CHECKING:
@@ -36,6 +37,7 @@ class RandomAgent(Agent):
     def reset(self, env_ids: Sequence[int], episodes: Sequence[Episode | None]) -> None:
         super().reset(env_ids, episodes)
 
+    @light_work()
     def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         view, _ = self._check_obs(obs)
         a = torch.randint(0, NUM_ACTIONS, (self.num_envs,), generator=self.generator, dtype=torch.int64)

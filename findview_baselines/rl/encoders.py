@@ -16,6 +16,7 @@ import math
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 __all__ = [
     "CONV_LAYERS",
@@ -78,6 +79,34 @@ class ConvEncoder(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x`` (B, C, H, W) float -> (B, out_size)."""
         return self.fc(self.convs(x).flatten(1))
+
+    def forward_pair(
+        self, view: torch.Tensor, target: torch.Tensor, inverse: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """:meth:`forward` of the channel stack ``[view, target]`` without building it.
+
+        The first convolution is linear in its input channels, so its output is the view's channels
+        convolved with their weights plus the target's channels with theirs; the target's part is computed
+        once per distinct target and gathered back (the same numbers up to float rounding).
+
+        Args:
+            view: (B, Cv, H, W) float.
+            target: (U, Ct, H, W) float with ``Cv + Ct`` the encoder's input channels; U = B when
+                ``inverse`` is None.
+            inverse: (B,) long, row ``i`` uses ``target[inverse[i]]`` (see ``rl/distinct.py``).
+
+        Returns:
+            (B, out_size).
+        """
+        first = self.convs[0]
+        assert isinstance(first, nn.Conv2d)
+        split = view.shape[1]
+        out = F.conv2d(view, first.weight[:, :split], first.bias, first.stride)
+        target_part = F.conv2d(target, first.weight[:, split:], None, first.stride)
+        # index_select, not [inverse]: its backward (index_add) sums the duplicates in a fixed order; the
+        # advanced-indexing backward accumulates with atomic adds on a multi-threaded CPU (not reproducible)
+        out = out + (target_part if inverse is None else target_part.index_select(0, inverse))
+        return self.fc(self.convs[1:](out).flatten(1))
 
 
 # grid of the correlation variant's feature maps (cells per side) and of its pixel-difference map

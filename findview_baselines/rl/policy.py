@@ -58,6 +58,7 @@ from torch.distributions import Categorical
 
 from findview.task import NUM_ACTIONS  # up, down, left, right, stop (findview.task.Action)
 from findview_baselines.rl.aux_head import AuxHead, aux_loss
+from findview_baselines.rl.distinct import distinct_rows
 from findview_baselines.rl.encoders import (
     CONV_LAYERS,
     CORR_GRID,
@@ -236,13 +237,13 @@ class Policy(nn.Module):
         self._compiled_encode = torch.compile(self.encode, backend=compile_backend) if compile else None
         return self
 
-    def features(self, obs: Obs) -> torch.Tensor:
+    def features(self, obs: Obs, distinct_targets: bool = False) -> torch.Tensor:
         """:meth:`encode` under the speed options: (B, F) float32 features entering the GRU."""
         encode = self._compiled_encode if self._compiled_encode is not None else self.encode
         if self.precision == "bf16":
             with torch.autocast(device_type=obs["view"].device.type, dtype=torch.bfloat16):
-                return encode(obs).float()
-        return encode(obs)
+                return encode(obs, distinct_targets).float()
+        return encode(obs, distinct_targets)
 
     def _init_weights(self) -> None:
         """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
@@ -276,35 +277,42 @@ class Policy(nn.Module):
 
     # ---------------------------------------------------------------------------------------------
 
-    def encode(self, obs: Obs) -> torch.Tensor:
+    def encode(self, obs: Obs, distinct_targets: bool = False) -> torch.Tensor:
         """Observation features before the GRU.
 
         ``obs["view"]``, ``obs["target"]``: (B, 3, H, W) uint8 -> (B, F) with F = :attr:`feature_size`
-        (hidden_size; 2 * hidden_size for ``goal_encoder``).
+        (hidden_size; 2 * hidden_size for ``goal_encoder``). ``distinct_targets``: run the target-only work
+        once per distinct target (``rl/distinct.py``; worth it on a rollout of several steps, where each
+        episode's target repeats; it costs a host read on CUDA, so acting one step does not ask for it).
         """
-        view = _to_float(obs["view"])
-        target = _to_float(obs["target"])
-        if self.channels_last:
-            view = view.contiguous(memory_format=torch.channels_last)
-            target = target.contiguous(memory_format=torch.channels_last)
-        if view.shape[-2:] != (self.height, self.width):
+        if obs["view"].shape[-2:] != (self.height, self.width):
             raise ValueError(
-                f"policy was built for {self.height}x{self.width} images, got {tuple(view.shape[-2:])}"
+                f"policy was built for {self.height}x{self.width} images, got {tuple(obs['view'].shape[-2:])}"
             )
+        view = self._prepare(obs["view"])
+        target_only = self.variant in ("early_fusion", "goal_encoder", "siamese")
+        if not target_only:  # FINE_VARIANTS
+            return self.encoder(view, self._prepare(obs["target"]))
+        # the work that depends on the target alone runs once per distinct target (a rollout repeats each
+        # episode's target on every step; see rl/distinct.py): the same features and gradients, less work
+        groups = distinct_rows(obs["target"]) if distinct_targets else None
+        target = self._prepare(obs["target"] if groups is None else obs["target"][groups[0]])
+        inverse = None if groups is None else groups[1]
         if self.variant == "early_fusion":
-            fused = torch.cat([view, target], dim=1)
-            if self.channels_last:
-                fused = fused.contiguous(memory_format=torch.channels_last)
-            return self.encoder(fused)
+            return self.encoder.forward_pair(view, target, inverse)
         if self.variant == "goal_encoder":
-            fused = self.encoder(torch.cat([view, target], dim=1))
-            return torch.cat([fused, self.goal_encoder(target)], dim=1)
-        if self.variant in FINE_VARIANTS:
-            return self.encoder(view, target)
-        # siamese: one encoder, two passes batched together
+            goal = self.goal_encoder(target)
+            fused = self.encoder.forward_pair(view, target, inverse)
+            return torch.cat([fused, goal if inverse is None else goal.index_select(0, inverse)], dim=1)
+        # siamese: one encoder, the view and the distinct targets batched together
         both = self.encoder(torch.cat([view, target], dim=0))
-        view_feat, target_feat = both.chunk(2, dim=0)
-        return self.fuse(torch.cat([view_feat, target_feat], dim=1))
+        view_feat, target_feat = both[: view.shape[0]], both[view.shape[0]:]
+        return self.fuse(torch.cat([view_feat, target_feat if inverse is None else target_feat.index_select(0, inverse)], dim=1))
+
+    def _prepare(self, images: torch.Tensor) -> torch.Tensor:
+        """Encoder input: float in [0, 1] (uint8 is scaled), in channels-last memory format when that is on."""
+        images = _to_float(images)
+        return images.contiguous(memory_format=torch.channels_last) if self.channels_last else images
 
     def run_gru(
         self, features: torch.Tensor, hidden: torch.Tensor, masks: torch.Tensor
@@ -358,7 +366,7 @@ class Policy(nn.Module):
 
         Same inputs as :meth:`run_gru` (time-major ``T*N`` rows, ``hidden`` (N, hidden), masks (T*N,)).
         """
-        features = self.features(obs)
+        features = self.features(obs, distinct_targets=obs["view"].shape[0] > hidden.shape[0])  # several steps
         out, new_hidden = self.run_gru(features, hidden, masks)
         dist = Categorical(logits=self.actor(out))
         values = self.critic(out).squeeze(-1)
