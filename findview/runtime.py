@@ -49,7 +49,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,8 @@ __all__ = [
     "compute_threads",
     "light_work",
     "heavy_work",
+    "heavy_threads",
+    "runnable_elsewhere",
     "blas_threads",
 ]
 
@@ -217,9 +219,12 @@ def blas_threads() -> list[int]:
 
 
 @contextmanager
-def _threads(torch_threads: int, blas: int | None) -> Iterator[None]:
+def _threads(kind: str) -> Iterator[None]:
+    """The scope of ``kind`` ``"light"`` or ``"heavy"``; the counts are chosen on each entry (also when the
+    scope decorates a function: the decorator re-enters it per call)."""
     import torch
 
+    torch_threads, blas = (1, 1) if kind == "light" else (heavy_threads(), None)
     before = torch.get_num_threads()
     if before != torch_threads:
         torch.set_num_threads(torch_threads)
@@ -237,11 +242,63 @@ def _threads(torch_threads: int, blas: int | None) -> Iterator[None]:
                 put(count)
 
 
-def light_work() -> "contextmanager":
+def light_work() -> AbstractContextManager[None]:
     """Scope (context manager or decorator) for many small ops: one torch thread, one OpenBLAS thread."""
-    return _threads(1, 1)
+    return _threads("light")
 
 
-def heavy_work() -> "contextmanager":
-    """Scope (context manager or decorator) for large convolutions: :func:`compute_threads` torch threads."""
-    return _threads(compute_threads(), None)
+def runnable_elsewhere() -> int | None:
+    """Tasks ready to run on this machine right now outside this process (Linux ``/proc``; ``None`` elsewhere).
+
+    The kernel's count of runnable tasks (``/proc/loadavg``, 4th field) minus this process's threads in
+    state ``R``: an instantaneous measure of the competing CPU load, unlike the load averages.
+    """
+    try:
+        with open("/proc/loadavg") as f:
+            running = int(f.read().split()[3].split("/")[0])
+        ours = 0
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{tid}/stat") as f:
+                    ours += f.read().rsplit(")", 1)[1].split()[0] == "R"
+            except OSError:  # the thread ended meanwhile
+                continue
+    except (OSError, ValueError, IndexError):
+        return None
+    return max(0, running - ours)
+
+
+# (time.monotonic() of the last look, the thread count chosen then): the load is looked at every LOAD_LOOK_S
+_load_look: tuple[float, int] = (-1e9, 1)
+#: seconds between two looks at the competing load (heavy_work entered more often reuses the last choice)
+LOAD_LOOK_S = 0.25
+
+
+def heavy_threads() -> int:
+    """The torch thread count :func:`heavy_work` uses now.
+
+    Set explicitly (:func:`configure_threads`, ``$FINDVIEW_COMPUTE_THREADS``): exactly that. Otherwise the
+    cores not taken by other runnable tasks (:func:`runnable_elsewhere`), between 1 and
+    :func:`compute_threads`: two threads on a machine whose other core is busy would wait for each other at
+    every parallel region (measured: the PPO update 2.9x slower next to two busy processes, against 1.6x
+    on one thread). Results then depend on the load: the thread count changes how float reductions are
+    split, so runs that must be bit-identical set the count.
+    """
+    global _load_look
+    cap = compute_threads()
+    if _compute_threads or os.environ.get(COMPUTE_THREADS_ENV, "").strip() or cap == 1:
+        return cap
+    import time
+
+    now = time.monotonic()
+    if now - _load_look[0] < LOAD_LOOK_S:
+        return min(_load_look[1], cap)
+    others = runnable_elsewhere()
+    chosen = cap if others is None else max(1, min(cap, cap - others))
+    _load_look = (now, chosen)
+    return chosen
+
+
+def heavy_work() -> AbstractContextManager[None]:
+    """Scope (context manager or decorator) for large convolutions: :func:`heavy_threads` torch threads."""
+    return _threads("heavy")

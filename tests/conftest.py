@@ -15,6 +15,10 @@ REPO = Path(__file__).resolve().parents[1]
 SUN360_MINI = Path(os.environ.get("FINDVIEW_SUN360_MINI", "") or "/nonexistent/sun360_mini")
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+# heavy work (network updates) on a fixed thread count, so that runs compared bit for bit use the same one
+# whatever else the machine runs (unset, findview.runtime.heavy_threads follows the competing load); the
+# thread policy's own tests set or clear it themselves. Subprocesses (DD-PPO ranks, tools) inherit it.
+os.environ.setdefault("FINDVIEW_COMPUTE_THREADS", "2" if (os.cpu_count() or 1) >= 2 else "1")
 
 
 def _need(path: Path, what: str) -> Path:

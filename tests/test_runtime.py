@@ -179,3 +179,45 @@ def test_compute_threads_knobs(monkeypatch):
     finally:
         runtime.configure_threads(None)
         torch.set_num_threads(before)
+
+
+def test_decorated_scopes_choose_per_call_and_heavy_work_yields_to_a_competing_load(monkeypatch):
+    """A decorator made before the setting changes still follows it; unset, heavy work takes the cores that
+    other runnable tasks leave (at least one, at most compute_threads())."""
+    import torch
+
+    from findview import runtime
+
+    @runtime.heavy_work()
+    def inside() -> int:
+        return torch.get_num_threads()
+
+    monkeypatch.setattr(runtime, "LOAD_LOOK_S", 0.0)
+    monkeypatch.setenv(runtime.COMPUTE_THREADS_ENV, "3")
+    assert inside() == 3
+    monkeypatch.setenv(runtime.COMPUTE_THREADS_ENV, "1")
+    assert inside() == 1
+    monkeypatch.delenv(runtime.COMPUTE_THREADS_ENV)
+    monkeypatch.setattr(runtime, "compute_threads", lambda: 4)
+    for others, expected in ((0, 4), (1, 3), (3, 1), (9, 1), (None, 4)):
+        monkeypatch.setattr(runtime, "runnable_elsewhere", lambda others=others: others)
+        assert inside() == expected, others
+
+
+def test_runnable_elsewhere_sees_a_busy_process():
+    from findview import runtime
+
+    if runtime.runnable_elsewhere() is None:
+        pytest.skip("no /proc/loadavg here")
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        import time
+
+        seen = []
+        for _ in range(40):  # a busy loop is runnable whenever it is looked at; other tasks come and go
+            time.sleep(0.02)
+            seen.append(runtime.runnable_elsewhere())
+        assert min(seen) >= 1, seen
+    finally:
+        busy.kill()
+        busy.wait()

@@ -56,6 +56,7 @@ import torch
 from torch import nn
 from torch.distributions import Categorical
 
+from findview.runtime import heavy_work
 from findview.task import NUM_ACTIONS  # up, down, left, right, stop (findview.task.Action)
 from findview_baselines.rl.aux_head import AuxHead, aux_loss
 from findview_baselines.rl.distinct import distinct_rows
@@ -376,6 +377,7 @@ class Policy(nn.Module):
     # The API used by the trainer / evaluator
     # ---------------------------------------------------------------------------------------------
 
+    @heavy_work()
     def act(
         self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor, deterministic: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -394,6 +396,7 @@ class Policy(nn.Module):
         actions = dist.logits.argmax(dim=-1) if deterministic else dist.sample()
         return actions, dist.log_prob(actions), values, new_hidden
 
+    @heavy_work()
     def get_value(self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
         """Critic value (N,) of one step (same inputs as :meth:`act`)."""
         out, _ = self.run_gru(self.features(obs), hidden, masks)
