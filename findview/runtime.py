@@ -13,9 +13,12 @@ The policy: **the thread count is chosen where the work is done**, for two kinds
 1. *Light work*, many small ops: the simulator (rendering, first reset, the environment's bookkeeping),
    the corruptions, the rule-based agents. It runs inside :func:`light_work`: one torch thread and one
    OpenBLAS thread, so no thread team exists to spin and nothing waits for a descheduled team member
-   (one thread is as fast as two on these ops on an idle machine). OpenCV keeps its own pool (it sleeps
-   when idle). ``FindViewEnv.reset`` / ``step``, ``Simulator.render``, ``corrupt`` and the feature
-   agents' ``reset`` / ``act`` enter it themselves, so a user script gets it without doing anything.
+   (one thread is as fast as two on these ops on an idle machine). OpenCV's pool (rendering, the feature
+   agents) keeps its count on an idle machine (two threads render twice as fast) and shrinks to the
+   cores that other runnable tasks leave when there are any (:func:`runnable_elsewhere`).
+   ``FindViewEnv`` (construction, ``reset``, ``step``), ``Simulator`` (construction, ``render``),
+   ``corrupt`` and the rule-based agents' ``reset`` / ``act`` enter it themselves, so a user script gets
+   it without doing anything.
 2. *Heavy work*, large convolutions and matrix products: the PPO and DAgger updates and rollouts, and the
    learned agents' forward passes. It runs inside :func:`heavy_work`: :func:`compute_threads` torch
    threads (the cores this process may use, unless told otherwise).
@@ -36,10 +39,10 @@ idle) and ``OPENBLAS_NUM_THREADS=1`` into the environment, unless the user set t
 once, when torch / numpy load their runtimes, and reach child processes; after that they do nothing
 (:func:`wait_policy_effective` tells). The scopes above do not depend on them.
 
-Measured on a 2-core machine shared with other jobs (``benchmarks/RESULTS.md``, "CPU load immunity" and
-"Import order"): with torch imported first and two competing processes, the first reset of 16
-environments took 0.30 s against 0.05 s before this policy, the sift agent ran at 20 decisions/s against
-51 with findview imported first.
+Measured on the 2-core development machine next to two busy processes (``benchmarks/RESULTS.md``, "Against
+the authors' code, whatever the import order"): with torch imported first, before these scopes, the first
+reset of 16 environments took 0.30 s against 0.05 s with findview first, and the sift agent ran at 20
+decisions/s against 51; with them both orders run at the same speed.
 """
 
 from __future__ import annotations
@@ -173,10 +176,7 @@ def compute_threads() -> int:
         if not value.isdigit() or int(value) < 1:
             raise ValueError(f"{COMPUTE_THREADS_ENV}={value!r}: expected a positive integer (torch threads)")
         return int(value)
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+    return _cores()
 
 
 def _find_blas() -> list[tuple[Callable[[], int], Callable[[int], None]]]:
@@ -232,6 +232,11 @@ def _threads(kind: str) -> Iterator[None]:
     for put, count in blas_before:
         if count != blas:
             put(blas)
+    cv2 = sys.modules.get("cv2") if kind == "light" else None
+    cv_before = cv2.getNumThreads() if cv2 is not None else 0
+    cv_threads = max(1, min(cv_before, _cores() - _others())) if cv2 is not None else 0
+    if cv_threads != cv_before:
+        cv2.setNumThreads(cv_threads)
     try:
         yield
     finally:
@@ -240,6 +245,8 @@ def _threads(kind: str) -> Iterator[None]:
         for put, count in blas_before:
             if count != blas:
                 put(count)
+        if cv_threads != cv_before:
+            cv2.setNumThreads(cv_before)
 
 
 def light_work() -> AbstractContextManager[None]:
@@ -268,10 +275,29 @@ def runnable_elsewhere() -> int | None:
     return max(0, running - ours)
 
 
-# (time.monotonic() of the last look, the thread count chosen then): the load is looked at every LOAD_LOOK_S
-_load_look: tuple[float, int] = (-1e9, 1)
-#: seconds between two looks at the competing load (heavy_work entered more often reuses the last choice)
+# (time.monotonic() of the last look, what runnable_elsewhere() said then): looked at every LOAD_LOOK_S
+_load_look: tuple[float, int] = (-1e9, 0)
+#: seconds between two looks at the competing load (scopes entered more often reuse the last look)
 LOAD_LOOK_S = 0.25
+
+
+def _cores() -> int:
+    """Cores in this process's CPU affinity mask."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _others() -> int:
+    """:func:`runnable_elsewhere`, looked at most every :data:`LOAD_LOOK_S` seconds (0 when unknown)."""
+    global _load_look
+    import time
+
+    now = time.monotonic()
+    if now - _load_look[0] >= LOAD_LOOK_S:
+        _load_look = (now, runnable_elsewhere() or 0)
+    return _load_look[1]
 
 
 def heavy_threads() -> int:
@@ -284,19 +310,10 @@ def heavy_threads() -> int:
     on one thread). Results then depend on the load: the thread count changes how float reductions are
     split, so runs that must be bit-identical set the count.
     """
-    global _load_look
     cap = compute_threads()
     if _compute_threads or os.environ.get(COMPUTE_THREADS_ENV, "").strip() or cap == 1:
         return cap
-    import time
-
-    now = time.monotonic()
-    if now - _load_look[0] < LOAD_LOOK_S:
-        return min(_load_look[1], cap)
-    others = runnable_elsewhere()
-    chosen = cap if others is None else max(1, min(cap, cap - others))
-    _load_look = (now, chosen)
-    return chosen
+    return max(1, min(cap, cap - _others()))
 
 
 def heavy_work() -> AbstractContextManager[None]:

@@ -241,6 +241,15 @@ class PPOAgentConfig:
     revisit_row_stride: int = 0
     """With the search memory on: once the agent has looked around a full turn near its row, it moves to the next
     search row, this many 1-step moves above / below its start (alternately: +s, -s, +2s, -2s, ...). 0 = off."""
+    refine_stop: bool = False
+    """At validation / evaluation: check each stop of the policy by phase correlation of view and target, and when
+    the target is measured at least half a degree away move towards it (one degree per step, at most
+    ``refine_moves`` moves) before stopping. See findview_baselines/agents/stop_refine.py."""
+    refine_moves: int = 4
+    """Most refinement moves per episode (with ``refine_stop``)."""
+    fov: float = 90.0
+    """Horizontal field of view of the views, degrees (the refinement's pixels-to-degrees; configs/agent/ppo.yaml
+    sets it to ${sim.fov})."""
     precision: str = "fp32"
     """Encoder compute dtype while training: fp32 | bf16 (torch.autocast on the policy's device, CPU or
     CUDA; the GRU, the heads and the weights stay float32, so checkpoints do not depend on it)."""
@@ -262,6 +271,8 @@ class PPOAgentConfig:
         )
         check(self.fine_scales >= 1, "agent.fine_scales", self.fine_scales, "a positive number of pyramid levels")
         check(self.revisit_row_stride >= 0, "agent.revisit_row_stride", self.revisit_row_stride, "0 (off) or a number of steps")
+        check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
+        check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
 
 

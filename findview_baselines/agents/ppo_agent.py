@@ -8,6 +8,8 @@
   distribution with one random stream per episode (seeded from the agent seed and the episode's id),
   so a trajectory does not depend on which slot or batch the episode ran in.
 - A slot that answered STOP keeps answering STOP without running the network until it is reset.
+- ``refine_stop=true`` checks each stop: when phase correlation measures the target at least half a degree
+  away, the agent moves towards it first (:mod:`findview_baselines.agents.stop_refine`).
 - ``revisit_penalty > 0`` switches on a search memory (:class:`~findview_baselines.rl.search_memory.RevisitPenalty`):
   each move's logit is lowered by that many logit units per earlier visit of the pose it leads to (poses
   dead-reckoned from the agent's own actions), which breaks left/right loops. 0 (the default) is the plain policy.
@@ -31,6 +33,7 @@ import torch
 from findview.episode import Episode
 from findview.runtime import heavy_work
 from findview_baselines.agents.base import STOP, Agent, episode_rng
+from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.search_memory import make_revisit_penalty
 
 if TYPE_CHECKING:
@@ -62,6 +65,8 @@ class PPOAgent(Agent):
             (0: off; see :mod:`findview_baselines.rl.search_memory`).
         revisit_row_stride: with the memory on, after a turn move to the next search row this many 1-step
             moves up or down (alternately, growing); 0: off.
+        refiner: a :class:`~findview_baselines.agents.stop_refine.StopRefiner` for the final refinement of the
+            policy's stops (``None``: the policy's stops stand).
     """
 
     name = "ppo"
@@ -75,6 +80,7 @@ class PPOAgent(Agent):
         sample: bool = False,
         revisit_penalty: float = 0.0,
         revisit_row_stride: int = 0,
+        refiner: StopRefiner | None = None,
     ) -> None:
         super().__init__(num_envs, device, seed)
         self.policy = policy.to(self.device).eval()
@@ -84,6 +90,7 @@ class PPOAgent(Agent):
         self._fallback = np.random.default_rng(self.seed)
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
         self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_row_stride)
+        self.refiner = refiner
 
     # construction --------------------------------------------------------------------------------
     @classmethod
@@ -98,6 +105,7 @@ class PPOAgent(Agent):
         width: int | None = None,
         revisit_penalty: float = 0.0,
         revisit_row_stride: int = 0,
+        refiner: StopRefiner | None = None,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -129,7 +137,7 @@ class PPOAgent(Agent):
             policy.load_state_dict(state["policy"])
         except RuntimeError as err:
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
-        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride)
+        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner)
 
     @classmethod
     def from_config(
@@ -152,6 +160,7 @@ class PPOAgent(Agent):
         return cls.from_checkpoint(
             checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
+            refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -163,6 +172,8 @@ class PPOAgent(Agent):
         self.hidden[torch.tensor(ids, device=self.hidden.device)] = 0.0
         if self.revisits is not None:
             self.revisits.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
+        if self.refiner is not None:
+            self.refiner.reset(ids)
         for i, ep in zip(ids, episodes):
             self.done[i] = ep is None
             self._rngs[i] = episode_rng(self.seed, ep, self._fallback)
@@ -173,35 +184,51 @@ class PPOAgent(Agent):
         view, target = self._check_obs(obs)
         actions = torch.full((self.num_envs,), STOP, dtype=torch.long, device=self.device)
         work = np.flatnonzero(~self.done)
+        refining = self.refiner.refining.numpy()[work] if self.refiner is not None else np.zeros(len(work), bool)
+        asked = work[~refining]  # the slots the policy decides for (a refining slot no longer asks it)
+        stops = np.zeros(0, dtype=np.int64)
+        if len(asked):
+            a_t = self._policy_actions(asked, view, target)
+            actions[torch.as_tensor(asked, device=self.device)] = a_t
+            stops = asked[(a_t == STOP).cpu().numpy()]
+        if self.refiner is not None:
+            check = np.concatenate([work[refining], stops])
+            if len(check):
+                idx = torch.as_tensor(check, device=self.device)
+                v, t = view.to(self.device)[idx], target.to(self.device)[idx]
+                actions[idx] = self.refiner.decide(idx, v, t)
         if len(work):
-            full = len(work) == self.num_envs
-            idx = torch.as_tensor(work, device=self.device)
-            v = view.to(self.device) if full else view.to(self.device)[idx]
-            t = target.to(self.device) if full else target.to(self.device)[idx]
-            h = self.hidden if full else self.hidden[idx]
-            masks = torch.ones(len(work), device=self.device)
-            dist, _, h_new = self.policy({"view": v, "target": t}, h, masks)
-            if full:
-                self.hidden = h_new
-            else:
-                self.hidden[idx] = h_new
-            logits = dist.logits
-            if self.revisits is not None:
-                logits = self.revisits.adjust(idx, v, logits)
-            if self.sample:
-                p_t = dist.probs if self.revisits is None else torch.softmax(logits, dim=-1)
-                probs = p_t.double().cpu().numpy()
-                cdf = np.cumsum(probs, axis=1)
-                u = np.array([self._rngs[i].random() for i in work])
-                a = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), probs.shape[1] - 1)
-                a_t = torch.as_tensor(a, dtype=torch.long, device=self.device)
-            else:
-                a_t = logits.argmax(dim=-1)
-            if self.revisits is not None:
-                self.revisits.moved(idx, a_t)
-            actions[idx] = a_t
-            self.done[work[(a_t == STOP).cpu().numpy()]] = True
+            self.done[work[(actions[torch.as_tensor(work, device=self.device)] == STOP).cpu().numpy()]] = True
         return actions.to(view.device)
+
+    def _policy_actions(self, work: np.ndarray, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The policy's actions (len(work),) for the slots ``work``; their GRU states move on."""
+        full = len(work) == self.num_envs
+        idx = torch.as_tensor(work, device=self.device)
+        v = view.to(self.device) if full else view.to(self.device)[idx]
+        t = target.to(self.device) if full else target.to(self.device)[idx]
+        h = self.hidden if full else self.hidden[idx]
+        masks = torch.ones(len(work), device=self.device)
+        dist, _, h_new = self.policy({"view": v, "target": t}, h, masks)
+        if full:
+            self.hidden = h_new
+        else:
+            self.hidden[idx] = h_new
+        logits = dist.logits
+        if self.revisits is not None:
+            logits = self.revisits.adjust(idx, v, logits)
+        if self.sample:
+            p_t = dist.probs if self.revisits is None else torch.softmax(logits, dim=-1)
+            probs = p_t.double().cpu().numpy()
+            cdf = np.cumsum(probs, axis=1)
+            u = np.array([self._rngs[i].random() for i in work])
+            a = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), probs.shape[1] - 1)
+            a_t = torch.as_tensor(a, dtype=torch.long, device=self.device)
+        else:
+            a_t = logits.argmax(dim=-1)
+        if self.revisits is not None:
+            self.revisits.moved(idx, a_t)
+        return a_t
 
 
 def _register() -> None:
