@@ -20,7 +20,9 @@ Paths (each a fixed amount of work, timed in seconds):
 - ``agent:<name>``: one env at 256x256, the agent's ``act`` plus ``env.step`` per decision, the way
   ``tools/eval.py`` plays (decisions/s), for the agents random, orb, sift, rotation;
 - ``ppo_update``: a PPO rollout + update built from ``build_policy`` (early fusion, GRU 512),
-  ``PPO`` and ``RolloutStorage`` (env steps/s, ``--ppo-size`` views, ``--ppo-envs`` x ``--ppo-steps``).
+  ``PPO`` and ``RolloutStorage`` (env steps/s, ``--ppo-size`` views, ``--ppo-envs`` x ``--ppo-steps``);
+- ``dagger_update``: one ``DAggerTrainer.train_update`` of the CPU recipe's network (``robust``, 64x64, 16 envs,
+  the default ``trainer.dagger`` settings) (env steps/s).
 
 The competing load is ``--load`` processes running ``while True: pass`` (default 2, one per core of a
 2-core machine), started as another job would be: in their own session (``--same-session`` starts
@@ -213,6 +215,31 @@ def path_ppo(files: list[str], size: int, num_envs: int, steps: int) -> Callable
     return run
 
 
+def path_dagger(files: list[str], size: int, num_envs: int) -> Callable[[], tuple[float, float]]:
+    """One DAgger update (rollout with the oracle's labels + training on the buffer) of the shipped CPU recipe's
+    network (``robust``, hidden 128, fine cost pyramid 2 x 4 levels) at ``size`` x ``size``."""
+    import torch
+
+    from findview_baselines.config import PPOAgentConfig
+    from findview_baselines.rl.dagger import DAggerTrainer
+    from findview_baselines.rl.dagger_config import DAggerConfig
+    from findview_baselines.rl.policy import build_policy
+
+    torch.manual_seed(0)
+    env = make_env(files, num_envs, size)
+    policy = build_policy(PPOAgentConfig(variant="robust", hidden_size=128, fine_shifts=2, fine_scales=4), size, size)
+    trainer = DAggerTrainer(env, policy, DAggerConfig(), total_updates=1000)
+    trainer.start()
+    trainer.train_update()  # warm-up
+
+    def run() -> tuple[float, float]:
+        t = time.perf_counter()
+        trainer.train_update()
+        return float(trainer.steps_per_update), time.perf_counter() - t
+
+    return run
+
+
 # -------------------------------------------------------------------------------------------- load
 class CpuLoad:
     """``n`` processes spinning ``while True: pass`` (started and stopped by this object only).
@@ -277,7 +304,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     ap.add_argument("--torch-threads", type=int, default=None,
                     help="call configure_threads(n) first (default: not called; the library's scopes decide)")
     ap.add_argument("--opencv-threads", type=int, default=None, help="cv2.setNumThreads (default: left as is)")
-    ap.add_argument("--paths", nargs="+", default=None, help="subset: control first_reset env_step agent:<name> ppo_update")
+    ap.add_argument("--paths", nargs="+", default=None, help="subset: control first_reset env_step agent:<name> ppo_update dagger_update")
     ap.add_argument("--env-steps", type=int, default=40, help="env_step: steps of 16 envs per timing")
     ap.add_argument("--decisions", type=int, default=60, help="agents: decisions per timing")
     ap.add_argument("--ppo-size", type=int, default=128, help="ppo_update: view size (square)")
@@ -318,8 +345,10 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
             "env_step": lambda: path_env_step(files, args.env_steps),
             **{f"agent:{a}": (lambda a=a: path_agent(files, a, args.decisions)) for a in AGENTS},
             "ppo_update": lambda: path_ppo(files, args.ppo_size, args.ppo_envs, args.ppo_steps),
+            "dagger_update": lambda: path_dagger(files, 64, 16),
         }
-        units = {"control": "M loop iterations/s", "first_reset": "s", "env_step": "env steps/s", "ppo_update": "env steps/s"}
+        units = {"control": "M loop iterations/s", "first_reset": "s", "env_step": "env steps/s", "ppo_update": "env steps/s",
+                 "dagger_update": "env steps/s"}
         wanted = args.paths or list(builders)
         unknown = [p for p in wanted if p not in builders]
         if unknown:

@@ -20,8 +20,10 @@ The policy: **the thread count is chosen where the work is done**, for two kinds
    ``corrupt`` and the rule-based agents' ``reset`` / ``act`` enter it themselves, so a user script gets
    it without doing anything.
 2. *Heavy work*, large convolutions and matrix products: the PPO and DAgger updates and rollouts, and the
-   learned agents' forward passes. It runs inside :func:`heavy_work`: :func:`compute_threads` torch
-   threads (the cores this process may use, unless told otherwise).
+   learned agents' forward passes, of a network of large convolutions (the paper's, on 128x128 views or
+   more: ``Policy.heavy``). It runs inside :func:`heavy_work` on :func:`heavy_threads` torch threads (the
+   cores this process may use that no other task is using, unless told otherwise). The same calls with a
+   small network (the 64x64 CPU recipe) are light work: :func:`scoped` picks the scope per object.
 
 Each scope sets the counts on entry (only those that differ) and restores the previous ones on exit, so
 code outside them keeps the user's settings. Both are context managers and decorators; they nest.
@@ -31,7 +33,9 @@ Knobs, in order of precedence, for the heavy work's thread count:
 - ``torch_threads`` in the train / eval configs (``trainer.torch_threads``), or
   :func:`configure_threads` ``(torch_threads=n)`` in a script;
 - the environment variable ``FINDVIEW_COMPUTE_THREADS``;
-- otherwise every core in the process's CPU affinity mask (``os.sched_getaffinity``).
+- otherwise the cores in the process's CPU affinity mask (``os.sched_getaffinity``) that other runnable
+  tasks leave free at the moment (:func:`heavy_threads`; then the count, and with it the last bits of the
+  results, follows the machine's load: set a count for bit-identical reruns).
 
 Also, as a second line of defence when findview is imported before torch and numpy:
 ``import findview`` puts ``OMP_WAIT_POLICY=PASSIVE`` (OpenMP threads sleep instead of spinning when
@@ -48,10 +52,12 @@ decisions/s against 51; with them both orders run at the same speed.
 from __future__ import annotations
 
 import ctypes
+import functools
 import logging
 import os
 import sys
 from collections.abc import Callable, Iterator
+from typing import Any
 from contextlib import AbstractContextManager, contextmanager
 
 log = logging.getLogger(__name__)
@@ -67,6 +73,7 @@ __all__ = [
     "light_work",
     "heavy_work",
     "heavy_threads",
+    "scoped",
     "runnable_elsewhere",
     "blas_threads",
 ]
@@ -319,3 +326,23 @@ def heavy_threads() -> int:
 def heavy_work() -> AbstractContextManager[None]:
     """Scope (context manager or decorator) for large convolutions: :func:`heavy_threads` torch threads."""
     return _threads("heavy")
+
+
+def scoped(is_heavy: Callable[[Any], bool]) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Method decorator: run the method in :func:`heavy_work` when ``is_heavy(self)``, else in :func:`light_work`.
+
+    For work whose size depends on the object: a network of large convolutions on 256x256 views is heavy
+    work, a small network on 64x64 views is many small ops (on two threads it waits for the second thread
+    at every op: measured, a DAgger update of the 64x64 CPU recipe ran at 130-235 env steps/s on two threads
+    with ``OMP_WAIT_POLICY=PASSIVE`` against 240-360 on one).
+    """
+
+    def decorate(method: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(method)
+        def wrapper(self: Any, *args: Any, **kwargs: Any) -> Any:
+            with heavy_work() if is_heavy(self) else light_work():
+                return method(self, *args, **kwargs)
+
+        return wrapper
+
+    return decorate

@@ -117,15 +117,28 @@ for _ in range(2):
         a, lp, v, h = policy.act(obs, hidden, masks)
     storage.insert(env.step(a)[0], h, a, lp, v, torch.zeros(2), torch.ones(2))
 storage.compute_returns(torch.zeros(2), 0.99, 0.95)
-PPO(policy, PPOConfig(rollout_steps=2, ppo_epochs=1)).update(storage)
+PPO(policy, PPOConfig(rollout_steps=2, ppo_epochs=1)).update(storage)  # a small network: light work
+seen["ppo_small"] = seen.pop("ppo")
+big = build_policy(PPOAgentConfig(hidden_size=16), 128, 128)  # the paper's encoder on 128x128: heavy work
+big_storage = RolloutStorage(2, 2, 128, 128, 16)
+pixels = lambda: torch.randint(0, 256, (2, 3, 128, 128), dtype=torch.uint8)
+big_storage.set_initial({"view": pixels(), "target": pixels()})
+for _ in range(2):
+    obs, hidden, masks = big_storage.current()
+    with torch.no_grad():
+        a, lp, v, h = big.act(obs, hidden, masks)
+    big_storage.insert({"view": pixels(), "target": pixels()}, h, a, lp, v, torch.zeros(2), torch.ones(2))
+big_storage.compute_returns(torch.zeros(2), 0.99, 0.95)
+PPO(big, PPOConfig(rollout_steps=2, ppo_epochs=1)).update(big_storage)
 print(json.dumps({"seen": seen, "after": [torch.get_num_threads(), blas_threads()],
                   "compute": runtime.compute_threads(), "blas_found": bool(runtime._find_blas())}))
 """
 
 
 def test_hot_paths_choose_their_threads_whatever_the_import_order(tmp_path):
-    """torch, numpy and cv2 imported first, torch and OpenBLAS at 2 threads: rendering and corruptions run on
-    one torch and one BLAS thread, the PPO update on compute_threads(); the user's counts are back afterwards."""
+    """torch, numpy and cv2 imported first, torch and OpenBLAS at 2 threads: rendering, corruptions and the PPO
+    update of a small network run on one torch and one BLAS thread, the update of the paper's network on 128x128
+    views on compute_threads(); the user's counts are back afterwards."""
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OPENBLAS_NUM_THREADS")}
     env["FINDVIEW_COMPUTE_THREADS"] = "3"
     proc = subprocess.run([sys.executable, "-c", SCOPES_PROBE, str(tmp_path / "pano.png")], capture_output=True,
@@ -136,6 +149,7 @@ def test_hot_paths_choose_their_threads_whatever_the_import_order(tmp_path):
     assert out["seen"]["render"] and all(seen == [1, blas_one] for seen in out["seen"]["render"])
     assert out["seen"]["corrupt"] == [[1, blas_one]]
     assert out["compute"] == 3 and out["seen"]["ppo"] and all(seen[0] == 3 for seen in out["seen"]["ppo"])
+    assert out["seen"]["ppo_small"] and all(seen == [1, blas_one] for seen in out["seen"]["ppo_small"])
     assert out["after"][0] == 2
     if out["blas_found"]:  # numpy's OpenBLAS (Linux wheels): its count is back to the user's
         assert out["after"][1] and set(out["after"][1]) == {2}

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from findview.episode import Episode
-from findview.runtime import heavy_work
+from findview.runtime import scoped
 from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.search_memory import make_revisit_penalty
@@ -179,7 +179,7 @@ class PPOAgent(Agent):
             self._rngs[i] = episode_rng(self.seed, ep, self._fallback)
 
     @torch.no_grad()
-    @heavy_work()
+    @scoped(lambda self: self.policy.heavy)
     def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         view, target = self._check_obs(obs)
         actions = torch.full((self.num_envs,), STOP, dtype=torch.long, device=self.device)

@@ -58,7 +58,7 @@ from typing import Any, Callable, Mapping
 import torch
 from torch import nn
 
-from findview.runtime import heavy_work
+from findview.runtime import scoped
 from findview.task import NUM_ACTIONS
 from findview.task.oracle import (
     optimal_action_mask_for,
@@ -310,7 +310,7 @@ class DAggerTrainer(Trainer):
                 totals[f"_n_{key}"] = totals.get(f"_n_{key}", 0.0) + 1.0
         return {k: v / totals[f"_n_{k}"] for k, v in totals.items() if not k.startswith("_n_")}
 
-    @heavy_work()
+    @scoped(lambda self: self.policy.heavy)
     def train_update(self, should_stop: Callable[[], bool] = never) -> dict[str, Any]:
         """One mixed rollout + training on the buffer; returns the stats (:data:`STAT_KEYS`, plus
         :data:`AUX_STAT_KEYS` with aux on), ``update``, ``env_steps``, ``level`` and ``episodes``.

@@ -56,7 +56,7 @@ import torch
 from torch import nn
 from torch.distributions import Categorical
 
-from findview.runtime import heavy_work
+from findview.runtime import scoped
 from findview.task import NUM_ACTIONS  # up, down, left, right, stop (findview.task.Action)
 from findview_baselines.rl.aux_head import AuxHead, aux_loss
 from findview_baselines.rl.distinct import distinct_rows
@@ -125,6 +125,10 @@ __all__ = [
 VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct", "robust")
 #: the variants with a fine cost pyramid (``agent.fine_shifts``)
 FINE_VARIANTS = ("correlation", "direct", "robust")
+#: the variants whose encoder is a stack of learned convolutions over the whole image
+CONV_VARIANTS = ("early_fusion", "goal_encoder", "siamese")
+#: views of at least this many pixels make a conv-encoder policy heavy work (Policy.heavy): 128 x 128
+HEAVY_MIN_PIXELS = 128 * 128
 PRECISIONS = ("fp32", "bf16")  # agent.precision: the encoder's compute dtype (see Policy.configure_speed)
 
 Obs = Mapping[str, torch.Tensor]
@@ -272,6 +276,13 @@ class Policy(nn.Module):
             sig["fine_scales"] = self.fine_scales
         return sig
 
+    @property
+    def heavy(self) -> bool:
+        """Whether running this network is heavy work (``findview.runtime.heavy_work``: every free core) rather
+        than many small ops (one thread): a conv-encoder variant on views of at least
+        :data:`HEAVY_MIN_PIXELS` pixels."""
+        return self.variant in CONV_VARIANTS and self.height * self.width >= HEAVY_MIN_PIXELS
+
     def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
         """Zero recurrent state, (num_envs, hidden_size)."""
         return torch.zeros(num_envs, self.hidden_size, device=device)
@@ -377,7 +388,7 @@ class Policy(nn.Module):
     # The API used by the trainer / evaluator
     # ---------------------------------------------------------------------------------------------
 
-    @heavy_work()
+    @scoped(lambda self: self.heavy)
     def act(
         self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor, deterministic: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -396,7 +407,7 @@ class Policy(nn.Module):
         actions = dist.logits.argmax(dim=-1) if deterministic else dist.sample()
         return actions, dist.log_prob(actions), values, new_hidden
 
-    @heavy_work()
+    @scoped(lambda self: self.heavy)
     def get_value(self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
         """Critic value (N,) of one step (same inputs as :meth:`act`)."""
         out, _ = self.run_gru(self.features(obs), hidden, masks)

@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from findview.config import check
-from findview.runtime import heavy_work
+from findview.runtime import scoped
 from findview_baselines.rl import distributed
 from findview_baselines.rl.aux_head import AuxHead, aux_loss
 from findview_baselines.rl.policy import Policy
@@ -195,7 +195,7 @@ class PPO:
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr
 
-    @heavy_work()
+    @scoped(lambda self: self.policy.heavy)
     def update(self, storage: RolloutStorage, generator: torch.Generator | None = None) -> dict[str, float]:
         """``ppo_epochs`` passes over the rollout in ``num_mini_batches`` env groups.
 

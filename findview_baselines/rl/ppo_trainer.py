@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterator, Mapping
 import torch
 from torch import nn
 
-from findview.runtime import heavy_work
+from findview.runtime import scoped
 from findview.task.oracle import rotation_labels
 from findview_baselines.rl import distributed
 from findview_baselines.rl.policy import Policy
@@ -171,7 +171,7 @@ class PPOTrainer(Trainer):
         self._add_rollout_timings(t_forward, t_env, time.perf_counter() - start)
         return records
 
-    @heavy_work()
+    @scoped(lambda self: self.policy.heavy)
     def train_update(self, should_stop: Callable[[], bool] = never) -> dict[str, Any]:
         """One rollout + one PPO update; returns PPO stats, level, env steps and the finished episodes.
 
