@@ -57,8 +57,8 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Iterator
-from typing import Any
 from contextlib import AbstractContextManager, contextmanager
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -169,9 +169,8 @@ def configure_threads(torch_threads: int | None = None, opencv_threads: int | No
     return n
 
 
-def compute_threads() -> int:
-    """The heavy work's torch thread count: :func:`configure_threads`'s ``torch_threads``, else
-    ``$FINDVIEW_COMPUTE_THREADS``, else the number of cores in this process's CPU affinity mask.
+def _set_threads() -> int | None:
+    """The heavy work's thread count set by :func:`configure_threads` or ``$FINDVIEW_COMPUTE_THREADS`` (None: unset).
 
     Raises:
         ValueError: ``$FINDVIEW_COMPUTE_THREADS`` is not a positive integer.
@@ -179,11 +178,21 @@ def compute_threads() -> int:
     if _compute_threads:
         return _compute_threads
     value = os.environ.get(COMPUTE_THREADS_ENV, "").strip()
-    if value:
-        if not value.isdigit() or int(value) < 1:
-            raise ValueError(f"{COMPUTE_THREADS_ENV}={value!r}: expected a positive integer (torch threads)")
-        return int(value)
-    return _cores()
+    if not value:
+        return None
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"{COMPUTE_THREADS_ENV}={value!r}: expected a positive integer (torch threads)")
+    return int(value)
+
+
+def compute_threads() -> int:
+    """The most torch threads heavy work uses: :func:`configure_threads`'s ``torch_threads``, else
+    ``$FINDVIEW_COMPUTE_THREADS``, else the number of cores in this process's CPU affinity mask.
+
+    Raises:
+        ValueError: ``$FINDVIEW_COMPUTE_THREADS`` is not a positive integer.
+    """
+    return _set_threads() or _cores()
 
 
 def _find_blas() -> list[tuple[Callable[[], int], Callable[[int], None]]]:
@@ -317,10 +326,11 @@ def heavy_threads() -> int:
     on one thread). Results then depend on the load: the thread count changes how float reductions are
     split, so runs that must be bit-identical set the count.
     """
+    chosen = _set_threads()
+    if chosen:
+        return chosen
     cap = compute_threads()
-    if _compute_threads or os.environ.get(COMPUTE_THREADS_ENV, "").strip() or cap == 1:
-        return cap
-    return max(1, min(cap, cap - _others()))
+    return cap if cap == 1 else max(1, cap - _others())
 
 
 def heavy_work() -> AbstractContextManager[None]:

@@ -5,7 +5,6 @@ stops near the target ends exactly on it."""
 from __future__ import annotations
 
 import cv2
-import numpy as np
 import pytest
 import torch
 
@@ -13,7 +12,6 @@ from findview.dataset import generate_panorama
 from findview.episode import Episode
 from findview.sim import PanoramaBank, Simulator
 from findview.task import Action, FindViewEnv, StaticEpisodeSource
-from findview_baselines.agents import stop_refine
 from findview_baselines.agents.stop_refine import StopRefiner, residual_rotation
 
 SIZE, FOV = 64, 90.0
@@ -38,12 +36,6 @@ def render(pano: str, poses: list[tuple[int, int]]) -> torch.Tensor:
     pitch = torch.tensor([p for p, _ in poses], dtype=torch.float32)
     yaw = torch.tensor([y for _, y in poses], dtype=torch.float32)
     return sim.render(torch.full((n,), slot, dtype=torch.long), pitch, yaw)
-
-
-def test_action_codes_are_the_tasks() -> None:
-    assert (stop_refine.UP, stop_refine.DOWN, stop_refine.LEFT, stop_refine.RIGHT, stop_refine.STOP) == tuple(
-        int(a) for a in (Action.UP, Action.DOWN, Action.LEFT, Action.RIGHT, Action.STOP)
-    )
 
 
 @pytest.mark.parametrize("pano_index", [0, 1])

@@ -21,9 +21,9 @@ import math
 
 import torch
 
-__all__ = ["residual_rotation", "StopRefiner"]
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
 
-UP, DOWN, LEFT, RIGHT, STOP = 0, 1, 2, 3, 4  # findview.task.Action (checked by tests/test_stop_refine.py)
+__all__ = ["residual_rotation", "StopRefiner"]
 
 _GRAY = (0.299, 0.587, 0.114)
 
@@ -103,9 +103,9 @@ class StopRefiner:
     def __init__(self, num_envs: int, fov: float, max_moves: int = 4, min_shift: float = 0.5,
                  min_peak: float = 0.15) -> None:
         if max_moves < 1:
-            raise ValueError(f"agent.refine_moves must be >= 1 with the refinement on, got {max_moves}")
+            raise ValueError(f"max_moves must be >= 1, got {max_moves}")
         if not 0 < fov < 180:
-            raise ValueError(f"agent.fov must be in (0, 180) degrees, got {fov}")
+            raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
         self.fov, self.max_moves, self.min_shift, self.min_peak = float(fov), int(max_moves), float(min_shift), float(min_peak)
         self.refining = torch.zeros(num_envs, dtype=torch.bool)
         self.moves = torch.zeros(num_envs, dtype=torch.long)

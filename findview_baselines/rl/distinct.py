@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["PROBE_PIXELS", "distinct_rows"]
+__all__ = ["PROBE_PIXELS", "distinct_rows", "regroup"]
 
 #: values sampled per row (evenly spaced over the flattened image) to group rows before the full comparison
 PROBE_PIXELS = 256
@@ -56,3 +56,13 @@ def distinct_rows(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | N
     if not bool((flat == flat[first[inverse]]).all()):
         return None
     return first, inverse
+
+
+def regroup(per_distinct: torch.Tensor, inverse: torch.Tensor | None) -> torch.Tensor:
+    """Results computed once per distinct row, ``(U, ...)``, back to one per row, ``(B, ...)``
+    (``inverse`` from :func:`distinct_rows`; ``None``: they already are one per row).
+
+    ``index_select``, not ``[inverse]``: its backward (``index_add``) sums the duplicates in a fixed order;
+    the advanced-indexing backward accumulates with atomic adds on a multi-threaded CPU (not reproducible).
+    """
+    return per_distinct if inverse is None else per_distinct.index_select(0, inverse)

@@ -18,6 +18,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from findview_baselines.rl.distinct import regroup
+
 __all__ = [
     "CONV_LAYERS",
     "conv_output_size",
@@ -103,9 +105,7 @@ class ConvEncoder(nn.Module):
         split = view.shape[1]
         out = F.conv2d(view, first.weight[:, :split], first.bias, first.stride)
         target_part = F.conv2d(target, first.weight[:, split:], None, first.stride)
-        # index_select, not [inverse]: its backward (index_add) sums the duplicates in a fixed order; the
-        # advanced-indexing backward accumulates with atomic adds on a multi-threaded CPU (not reproducible)
-        out = out + (target_part if inverse is None else target_part.index_select(0, inverse))
+        out = out + regroup(target_part, inverse)
         return self.fc(self.convs[1:](out).flatten(1))
 
 

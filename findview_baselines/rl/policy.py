@@ -59,7 +59,7 @@ from torch.distributions import Categorical
 from findview.runtime import scoped
 from findview.task import NUM_ACTIONS  # up, down, left, right, stop (findview.task.Action)
 from findview_baselines.rl.aux_head import AuxHead, aux_loss
-from findview_baselines.rl.distinct import distinct_rows
+from findview_baselines.rl.distinct import distinct_rows, regroup
 from findview_baselines.rl.encoders import (
     CONV_LAYERS,
     CORR_GRID,
@@ -302,8 +302,7 @@ class Policy(nn.Module):
                 f"policy was built for {self.height}x{self.width} images, got {tuple(obs['view'].shape[-2:])}"
             )
         view = self._prepare(obs["view"])
-        target_only = self.variant in ("early_fusion", "goal_encoder", "siamese")
-        if not target_only:  # FINE_VARIANTS
+        if self.variant not in CONV_VARIANTS:  # the FINE_VARIANTS take both images together
             return self.encoder(view, self._prepare(obs["target"]))
         # the work that depends on the target alone runs once per distinct target (a rollout repeats each
         # episode's target on every step; see rl/distinct.py): the same features and gradients, less work
@@ -315,11 +314,11 @@ class Policy(nn.Module):
         if self.variant == "goal_encoder":
             goal = self.goal_encoder(target)
             fused = self.encoder.forward_pair(view, target, inverse)
-            return torch.cat([fused, goal if inverse is None else goal.index_select(0, inverse)], dim=1)
+            return torch.cat([fused, regroup(goal, inverse)], dim=1)
         # siamese: one encoder, the view and the distinct targets batched together
         both = self.encoder(torch.cat([view, target], dim=0))
         view_feat, target_feat = both[: view.shape[0]], both[view.shape[0]:]
-        return self.fuse(torch.cat([view_feat, target_feat if inverse is None else target_feat.index_select(0, inverse)], dim=1))
+        return self.fuse(torch.cat([view_feat, regroup(target_feat, inverse)], dim=1))
 
     def _prepare(self, images: torch.Tensor) -> torch.Tensor:
         """Encoder input: float in [0, 1] (uint8 is scaled), in channels-last memory format when that is on."""
