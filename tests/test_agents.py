@@ -396,6 +396,25 @@ def test_rotation_agent_walks_straight_and_stops(panos):
     assert env.steps == l1_distance(5, 30, -3, 41) + 1  # shortest path: SPL 1
 
 
+def test_rotation_agent_finds_a_motion_blurred_target_at_half_size(panos):
+    """Motion blur (severity 3) leaves a target few full-size keypoints that match; the agent then looks
+    again at half size, where they do, and heads for the target (15 degrees up) at once instead of
+    starting its search (a yaw sweep). Four blur directions; on this panorama the full-size estimate
+    alone finds nothing in any of them."""
+    from findview.corruptions import corrupt
+
+    equi = panos[PANOS[1]]
+    e = ep((0, 30), (15, 40))
+    view = render(equi, [(0, 30)])
+    firsts = []
+    for seed in range(4):
+        target = corrupt(render(equi, [(15, 40)]), "motion_blur", 3, generator=torch.Generator().manual_seed(seed))
+        agent = make_agent("rotation", None, 1, "cpu", 0)
+        agent.reset([0], [e])
+        firsts.append(int(agent.act(obs_of(view, target))[0]))
+    assert firsts.count(UP) >= 3, firsts
+
+
 def test_rotation_agent_identical_and_flat(panos):
     view = render(panos[PANOS[0]], [(5, 30)])
     grey = torch.full((1, 3, H, W), 128, dtype=torch.uint8)
