@@ -216,9 +216,11 @@ def sim_override(agent: AgentSpec, fov: float) -> str:
     return f"sim.fov={fov_tag(fov)}"
 
 
-def runtime_overrides(agent: AgentSpec, agent_threads: int) -> list[str]:
+def runtime_overrides(agent: AgentSpec, agent_threads: int, user: Sequence[str] = ()) -> list[str]:
+    """The cell's thread settings; an ``agent.threads`` the user gave (``--override``) is kept."""
     out = ["progress=false", "torch_threads=1"]
-    if agent.agent is not None and _agent_has_threads(agent.agent):
+    given = {o.split("=", 1)[0].lstrip("+") for o in user}
+    if agent.agent is not None and _agent_has_threads(agent.agent) and "agent.threads" not in given:
         out.append(f"agent.threads={agent_threads}")
     return out
 
@@ -244,7 +246,7 @@ def make_plan(args: argparse.Namespace, agents: Sequence[AgentSpec], corruptions
                     name = f"{agent.key}_fov{fov_tag(fov)}_{corruption}_s{sev}"
                     extra = [f"corruption.name={corruption}", f"corruption.severity={sev}"]
                 cells.append(Cell(name, agent, fov, corruption, sev, base + extra,
-                                  runtime_overrides(agent, threads), runs / name))
+                                  runtime_overrides(agent, threads, args.override or []), runs / name))
     return cells
 
 

@@ -81,3 +81,21 @@ def test_robustness_benchmark_end_to_end(tmp_path, capsys, monkeypatch):
     args.T = 31
     plan = robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
     assert not any(robustness.is_done(c, {}) for c in plan)
+
+
+def test_user_agent_threads_are_not_overridden():
+    """``--override agent.threads=1`` reaches every cell's command; the tool's own thread count (appended
+    after the user's overrides, where it would win) is only added when the user set none."""
+    def plan(*extra: str) -> list:
+        args = robustness.build_parser().parse_args(
+            ["--agents", "rotation", "--corruptions", "fog", "--severities", "3", "--fovs", "90", *extra])
+        args.fovs = [float(f) for f in args.fovs]
+        agents = robustness.parse_agents(args.agents, AssertionError)
+        return robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
+
+    for cell in plan("--override", "agent.threads=1"):
+        threads = [o for o in cell.overrides + cell.runtime if o.startswith("agent.threads=")]
+        assert threads == ["agent.threads=1"], cell.name
+    for cell in plan():
+        assert len([o for o in cell.runtime if o.startswith("agent.threads=")]) == 1, cell.name
+        assert not any(o.startswith("agent.threads=") for o in cell.overrides), cell.name
