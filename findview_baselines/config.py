@@ -232,6 +232,11 @@ class PPOAgentConfig:
     fine_scales: int = 1
     """Pyramid levels of that cost map (2x average pooling per level; level s covers k * 2^s pixels);
     1 = full resolution only. Part of the checkpoint signature."""
+    downsample: int = 1
+    """Training: the network takes the rendered views (``sim.height x sim.width``) averaged over ``k x k`` blocks
+    (findview_baselines/rl/observations.py), so it is built for ``sim.height / k x sim.width / k`` images while
+    targets are corrupted at the rendered size, as for every other agent. 1 = the views as rendered. (A learned
+    agent evaluated on views an integer multiple of its network's size averages them down by itself.)"""
     sample: bool = False
     """Draw actions from the policy at validation / evaluation time instead of taking the argmax."""
     revisit_penalty: float = 0.0
@@ -264,6 +269,7 @@ class PPOAgentConfig:
         check(self.variant in POLICY_VARIANTS, "agent.variant", self.variant, " | ".join(POLICY_VARIANTS))
         check(self.precision in POLICY_PRECISIONS, "agent.precision", self.precision, " | ".join(POLICY_PRECISIONS))
         check(self.hidden_size >= 1, "agent.hidden_size", self.hidden_size, "a positive size")
+        check(self.downsample >= 1, "agent.downsample", self.downsample, "a positive integer factor")
         check(
             self.fine_shifts == 0 or (self.fine_shifts > 0 and self.variant in FINE_VARIANTS),
             "agent.fine_shifts", self.fine_shifts,

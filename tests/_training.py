@@ -34,6 +34,19 @@ def blob_panorama(seed: int, width: int = 256) -> np.ndarray:
     return image
 
 
+def write_panoramas(root: Path, make: Any, seeds: Any, label: str) -> list:
+    """``make(seed)`` (a BGR image) written as ``root/pano_<i>.png`` for each seed; their
+    :class:`~findview.dataset.ImageEntry` rows with ``label``."""
+    from findview.dataset import ImageEntry
+
+    entries = []
+    for i, seed in enumerate(seeds):
+        path = root / f"pano_{i}.png"
+        cv2.imwrite(str(path), make(seed))
+        entries.append(ImageEntry(str(path), label))
+    return entries
+
+
 def _value(v: Any) -> str:
     return "null" if v is None else str(v)
 

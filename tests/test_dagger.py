@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from _training import write_panoramas
 from findview.dataset import EpisodeSampler, ImageEntry
 from findview.geometry import l1_distance, wrap_yaw
 from findview.sim import PanoramaBank, Simulator
@@ -295,13 +296,7 @@ def colour_panorama(seed: int, width: int = 128) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def panoramas(tmp_path_factory) -> list[ImageEntry]:
-    root = tmp_path_factory.mktemp("dagger_panoramas")
-    entries = []
-    for i in range(6):
-        path = root / f"pano_{i}.png"
-        cv2.imwrite(str(path), colour_panorama(300 + i))
-        entries.append(ImageEntry(str(path), "wheel"))
-    return entries
+    return write_panoramas(tmp_path_factory.mktemp("dagger_panoramas"), colour_panorama, range(300, 306), "wheel")
 
 
 def make_env(images, num_envs: int, size: int, pitch_bound: int, max_steps: int, source) -> FindViewEnv:

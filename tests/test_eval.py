@@ -446,12 +446,15 @@ def test_eval_tool_with_checkpoint(folder_ds, tiny_ckpt, tmp_path):
     assert sum(summary[d]["episodes"] for d in summary if d != "runtime") == 4
     assert json.loads((out / "run.json").read_text())["agent"] == "ppo"
 
-    # a checkpoint trained on another view size: the message says which sizes
+    # a checkpoint trained on another view size (not a multiple of its own): the message says which sizes
     from findview_baselines.evaluation.evaluate import EvalError, build_agent
 
-    cfg = _eval_cfg("agent=ppo", f"checkpoint={ckpt}", "sim.height=256", "sim.width=256")
-    with pytest.raises(EvalError, match=r"64x64.*sim.height=256"):
+    cfg = _eval_cfg("agent=ppo", f"checkpoint={ckpt}", "sim.height=100", "sim.width=100")
+    with pytest.raises(EvalError, match=r"64x64.*sim.height=100"):
         build_agent(cfg, 2, torch.device("cpu"))
+    # a multiple of it is averaged down by the agent
+    cfg = _eval_cfg("agent=ppo", f"checkpoint={ckpt}", "sim.height=128", "sim.width=128")
+    assert build_agent(cfg, 2, torch.device("cpu"))[0].policy.height == 64
 
 
 def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_line(tiny_ckpt, tmp_path):
@@ -476,6 +479,27 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy
+
+
+def test_checkpoint_eval_renders_at_the_size_its_run_rendered(tiny_ckpt, tmp_path):
+    """A run with agent.downsample=k rendered k times its network's size: evaluation renders that size too
+    unless the command line gives one; a checkpoint without a run config renders its network's size."""
+    from findview_baselines.evaluation.evaluate import apply_checkpoint_config
+
+    state = torch.load(tiny_ckpt, weights_only=True)
+    h, w = int(state["signature"]["height"]), int(state["signature"]["width"])
+    state["config"] = {"sim": {"fov": 90.0, "height": 4 * h, "width": 4 * w}}
+    ckpt = tmp_path / "downsampled_run.pth"
+    torch.save(state, ckpt)
+    cfg = apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}"), [])
+    assert (cfg.sim.height, cfg.sim.width) == (4 * h, 4 * w)
+    given = ["sim.height=" + str(2 * h), "sim.width=" + str(2 * w)]
+    cfg = apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *given), given)
+    assert (cfg.sim.height, cfg.sim.width) == (2 * h, 2 * w)
+    del state["config"]
+    torch.save(state, ckpt)
+    cfg = apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", "sim.height=32"), ["sim.height=32"])
+    assert (cfg.sim.height, cfg.sim.width) == (32, w)
 
 
 def test_a_missing_checkpoint_next_to_a_model_card_points_to_the_card(tmp_path):

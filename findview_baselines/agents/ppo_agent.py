@@ -1,8 +1,12 @@
 """A trained PPO policy (``findview_baselines.rl``) behind the batched :class:`Agent` interface.
 
 - The model is rebuilt from the checkpoint's own signature (``variant``, ``hidden_size``, ``height``,
-  ``width``), so no model config is needed; a checkpoint trained on another view size than the
-  simulator's fails with a message naming both sizes.
+  ``width``), so no model config is needed. The simulator may render the checkpoint's view size or an
+  integer multiple ``k`` of it (e.g. 256x256 for a 64x64 network): the agent then averages each ``k x k``
+  block of the view and the target (:func:`area_downsample`), so it sees the same images as an agent
+  working at full size, corruptions included (a corruption's kernel is in pixels of the image it is
+  applied to: at 64x64 the same severity destroys four times more of the picture). Another size fails
+  with a message naming both.
 - The GRU state of a slot is zeroed by ``reset(env_ids, ...)`` (a new episode starts there).
 - Actions are greedy (argmax of the logits) by default; ``sample=True`` draws them from the policy's
   distribution with one random stream per episode (seeded from the agent seed and the episode's id),
@@ -34,6 +38,7 @@ from findview.episode import Episode
 from findview.runtime import scoped
 from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.stop_refine import StopRefiner
+from findview_baselines.rl.observations import area_downsample, downsample_factor
 from findview_baselines.rl.search_memory import make_revisit_penalty
 
 if TYPE_CHECKING:
@@ -110,8 +115,8 @@ class PPOAgent(Agent):
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
         Args:
-            height, width: the simulator's view size; a checkpoint trained on another size raises
-                ``ValueError`` saying which.
+            height, width: the simulator's view size: the checkpoint's, or the same integer multiple of its
+                height and width (:func:`downsample_factor`); another size raises ``ValueError`` saying which.
         """
         from findview_baselines.rl.policy import Policy
         from findview_baselines.rl.signature import check_signature
@@ -122,11 +127,13 @@ class PPOAgent(Agent):
         if missing:
             raise ValueError(f"{path}: checkpoint model signature lacks {missing} (signature: {sig})")
         h, w = int(sig["height"]), int(sig["width"])
-        if (height is not None and int(height) != h) or (width is not None and int(width) != w):
+        sim_h, sim_w = int(height if height is not None else h), int(width if width is not None else w)
+        if downsample_factor((sim_h, sim_w), (h, w)) is None:
             raise ValueError(
                 f"checkpoint {path} was trained on {h}x{w} (height x width) views but the simulator renders "
-                f"{height}x{width} (sim.height={height}, sim.width={width}); evaluate it with "
-                f"sim.height={h} sim.width={w} (and the FoV it was trained with)"
+                f"{sim_h}x{sim_w} (sim.height={sim_h}, sim.width={sim_w}); evaluate it with "
+                f"sim.height={h} sim.width={w} or an integer multiple of both (the agent then area-averages "
+                f"the views down to {h}x{w}), and the FoV it was trained with"
             )
         policy = Policy(
             height=h, width=w, variant=str(sig["variant"]), hidden_size=int(sig["hidden_size"]),
@@ -182,6 +189,14 @@ class PPOAgent(Agent):
     @scoped(lambda self: self.policy.heavy)
     def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         view, target = self._check_obs(obs)
+        k = downsample_factor(tuple(view.shape[-2:]), (self.policy.height, self.policy.width))
+        if k is None:
+            raise ValueError(
+                f"{self.name}: views of {tuple(view.shape[-2:])} pixels; the policy takes "
+                f"{self.policy.height}x{self.policy.width} or an integer multiple of it"
+            )
+        full_view, full_target = view, target  # the stop refinement measures on the views as rendered
+        view, target = area_downsample(view, k), area_downsample(target, k)
         actions = torch.full((self.num_envs,), STOP, dtype=torch.long, device=self.device)
         work = np.flatnonzero(~self.done)
         refining = self.refiner.refining.numpy()[work] if self.refiner is not None else np.zeros(len(work), bool)
@@ -195,7 +210,7 @@ class PPOAgent(Agent):
             check = np.concatenate([work[refining], stops])
             if len(check):
                 idx = torch.as_tensor(check, device=self.device)
-                v, t = view.to(self.device)[idx], target.to(self.device)[idx]
+                v, t = full_view.to(self.device)[idx], full_target.to(self.device)[idx]
                 actions[idx] = self.refiner.decide(idx, v, t)
         if len(work):
             self.done[work[(actions[torch.as_tensor(work, device=self.device)] == STOP).cpu().numpy()]] = True

@@ -206,7 +206,8 @@ def _rewrite_hydra_config(out: Path, cfg: EvalConfig) -> None:
 def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> EvalConfig:
     """``checkpoint=...``: the config with the FoV, the view size and the agent's model of the checkpoint.
 
-    ``sim.fov`` / ``sim.height`` / ``sim.width`` come from the checkpoint unless given on the command line
+    ``sim.fov`` / ``sim.height`` / ``sim.width`` come from the checkpoint (the view size its run rendered,
+    an integer multiple of its network's with ``agent.downsample``) unless given on the command line
     (or a ``sim=`` preset was chosen); ``agent`` becomes a learned-agent config with the checkpoint's model
     (keeping ``agent.sample`` when the learned agent was chosen); the search memory
     (``agent.revisit_penalty``, ``agent.revisit_row_stride``) is the command line's, else the training
@@ -228,7 +229,9 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     sig = dict(state["signature"])  # checkpoint contents: read by key
     run_conf = dict(state.get("config") or {})
     trained_sim, trained_agent = dict(run_conf.get("sim") or {}), dict(run_conf.get("agent") or {})
-    view = {k: int(sig[k]) for k in ("height", "width") if k in sig and not given & {"sim", f"sim.{k}"}}
+    # the size the run rendered (a multiple of the network's with agent.downsample), else the network's
+    rendered = trained_sim if all(k in trained_sim for k in ("height", "width")) else sig
+    view = {k: int(rendered[k]) for k in ("height", "width") if k in rendered and not given & {"sim", f"sim.{k}"}}
     if "fov" in trained_sim and not given & {"sim", "sim.fov"}:
         view["fov"] = float(trained_sim["fov"])
     model = {k: sig[k] for k in _MODEL_KEYS if k in sig}

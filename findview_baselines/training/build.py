@@ -116,6 +116,9 @@ def build_run(cfg: TrainConfig, seed: int, progress: bool) -> RunParts:
     """Data (made if missing; rank 0 first), this rank's shard of the train images, the sampled training
     environments, the val environment (rank 0), the policy and the trainer. ``seed``: this rank's seed."""
     t, sim = cfg.trainer, rank_sim(cfg.sim)
+    if sim.height % cfg.agent.downsample or sim.width % cfg.agent.downsample:
+        raise UserError(f"agent.downsample={cfg.agent.downsample} must divide the rendered view size "
+                        f"sim.height x sim.width = {sim.height}x{sim.width}")
     main = distributed.is_main()
     train_images, val_all = distributed.main_first(lambda: load_data(cfg, progress))
     train_images = distributed.shard(train_images, distributed.rank(), distributed.world_size())
@@ -137,7 +140,12 @@ def build_run(cfg: TrainConfig, seed: int, progress: bool) -> RunParts:
     if val_episodes:
         val_env = build_static_env(sim, cfg.task, val_episodes, val_envs, corruption_cfg=cfg.corruption,
                                    max_steps=t.val_max_steps, simulator=env.sim)
-    policy = build_policy(cfg.agent, sim.height, sim.width).to(env.device)
+    k = cfg.agent.downsample
+    if k > 1:  # the network takes the rendered views averaged down (rl/observations.py)
+        from findview_baselines.rl.observations import DownsampledEnv
+
+        env = DownsampledEnv(env, k)
+    policy = build_policy(cfg.agent, sim.height // k, sim.width // k).to(env.device)
     return RunParts(make_trainer(cfg, env, policy, scheduler, seed), val_env, val_episodes)
 
 
