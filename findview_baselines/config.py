@@ -126,6 +126,10 @@ class FeatureAgentConfig:
     """Last N actions (this one included) checked for oscillation; < 2 disables."""
     osc_rule: str = "alternating"
     """alternating (L,R,L,R / U,D,U,D) | mixed (one axis, both directions)."""
+    cache_views: int = 400
+    """Views per slot whose keypoints are remembered for the episode (a slot that repeats its move circles
+    and sees them again every 360 moves); 0 = off. Results do not depend on it, only speed and memory
+    (up to ~70 KB per view)."""
     threads: int = 2
     """Environment slots processed in parallel (OpenCV releases the GIL)."""
     cv2_threads: Optional[int] = 1
@@ -137,6 +141,7 @@ class FeatureAgentConfig:
         check(self.n_features >= 1, "agent.n_features", self.n_features, "a positive number of keypoints")
         check(0 < self.ratio <= 1, "agent.ratio", self.ratio, "a ratio in (0, 1]")
         check(self.osc_rule in ("alternating", "mixed"), "agent.osc_rule", self.osc_rule, "alternating | mixed")
+        check(self.cache_views >= 0, "agent.cache_views", self.cache_views, "0 (off) or a number of views")
         check(self.threads >= 1, "agent.threads", self.threads, "a positive number of threads")
 
 

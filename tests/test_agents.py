@@ -17,7 +17,8 @@ from findview.episode import Episode
 from findview.geometry import l1_distance, wrap_yaw
 from findview.imageio import load_panorama
 from findview_baselines.agents import agent_names, default_agent_config, make_agent
-from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, host_images, rgb_to_gray
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP, gray_of, host_images, rgb_to_gray
+from findview_baselines.agents.feature_base import ViewCache
 from findview_baselines.agents.feature_matching import (
     FeatureMatchingAgent,
     detect,
@@ -413,6 +414,60 @@ def test_rotation_agent_finds_a_motion_blurred_target_at_half_size(panos):
         agent.reset([0], [e])
         firsts.append(int(agent.act(obs_of(view, target))[0]))
     assert firsts.count(UP) >= 3, firsts
+
+
+def test_view_cache_gives_back_the_features_it_was_given(panos):
+    """The cache returns exactly what detection returned (SIFT descriptors packed as uint8 and restored as
+    float32), computes each view once, and drops the least recently used view beyond its capacity."""
+    views = render(panos[PANOS[0]], [(0, 0), (0, 30), (0, 60)], h=128, w=128).numpy()
+    for kind in ("sift", "orb"):
+        calls = []
+
+        def compute(i: int):
+            calls.append(i)
+            return detect(kind, gray_of(views[i]))
+
+        cache = ViewCache(2)
+        first = cache.get(views[0], lambda: compute(0))
+        again = cache.get(views[0].copy(), lambda: compute(0))  # the bytes are the key, not the object
+        assert calls == [0] and cache.hits == 1
+        assert np.array_equal(first.pts, again.pts) and again.des.dtype == first.des.dtype
+        assert np.array_equal(first.des, again.des)
+        cache.get(views[1], lambda: compute(1))
+        cache.get(views[2], lambda: compute(2))  # evicts view 0
+        cache.get(views[0], lambda: compute(0))
+        assert calls == [0, 1, 2, 0] and len(cache) == 2
+        assert ViewCache(0).get(views[0], lambda: compute(0)) is not None and len(calls) == 5
+
+
+def test_sift_circling_with_the_view_cache_acts_as_without_it(panos):
+    """A sift slot whose target is from another panorama finds no match and repeats its move: it circles and
+    sees the same views again after a turn. With the cache those views are not detected again (hits), and the
+    actions are the ones of the agent without the cache."""
+    target = render(panos[PANOS[0]], [(10, 50)], h=128, w=128)
+    rendered: dict[tuple[int, int], torch.Tensor] = {}
+
+    def view_at(p: int, y: int) -> torch.Tensor:
+        if (p, y) not in rendered:
+            rendered[(p, y)] = render(panos[PANOS[1]], [(p, y)], h=128, w=128)
+        return rendered[(p, y)]
+
+    runs = []
+    for cache_views in (400, 0):
+        agent = make_agent("sift", agent_cfg("sift", cache_views=cache_views), 1, "cpu", 0)
+        agent.reset([0], [ep((0, 0), (10, 50))])
+        p, y, actions = 0, 0, []
+        for _ in range(380):
+            a = int(agent.act(obs_of(view_at(p, y), target))[0])
+            actions.append(a)
+            if a == STOP:
+                break
+            p = int(np.clip(p + (a == UP) - (a == DOWN), -60, 60))
+            y = int(wrap_yaw(y + (a == RIGHT) - (a == LEFT)))
+        runs.append((actions, agent.slots[0].views.hits))
+    (cached, hits), (plain, no_hits) = runs
+    assert cached == plain and len(cached) == 380
+    assert hits >= 10 and no_hits == 0
 
 
 def test_rotation_agent_identical_and_flat(panos):

@@ -24,7 +24,9 @@ use.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import threading
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -41,6 +43,7 @@ from findview_baselines.agents.base import STOP, Agent, check_keys, episode_rng,
 __all__ = [
     "DETECTORS",
     "Features",
+    "ViewCache",
     "detect",
     "norm_type",
     "knn2",
@@ -113,6 +116,52 @@ def detect(kind: str, gray: np.ndarray, n_features: int = 500) -> Features:
         return Features(np.zeros((0, 2), np.float32), None)
     pts = np.array([kp.pt for kp in kps], dtype=np.float32).reshape(-1, 2)
     return Features(pts, des)
+
+
+class ViewCache:
+    """The keypoints of the views a slot has seen, by the views' bytes (least recently used dropped beyond
+    ``capacity``). An episode that runs in circles (the paper's rule repeats its last move when nothing
+    matches) sees the same views again every 360 moves; detection is the costly part of a step, and the
+    same view gives the same keypoints, so results do not change. SIFT descriptors, whole numbers in
+    [0, 255] as OpenCV computes them, are kept as uint8 (a quarter of the memory) and given back as
+    float32, exactly.
+
+    Args:
+        capacity: views kept (0: the cache is off).
+    """
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = int(capacity)
+        self._items: OrderedDict[bytes, tuple[np.ndarray, np.ndarray | None, bool]] = OrderedDict()
+        self.hits = 0
+
+    def clear(self) -> None:
+        self._items.clear()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def get(self, view: np.ndarray, compute: Callable[[], Features]) -> Features:
+        """The features of ``view`` (any array; its bytes are the key): cached, else ``compute()`` (stored)."""
+        if self.capacity <= 0:
+            return compute()
+        key = hashlib.blake2b(np.ascontiguousarray(view).data, digest_size=16).digest()
+        item = self._items.get(key)
+        if item is not None:
+            self._items.move_to_end(key)
+            self.hits += 1
+            pts, des, packed = item
+            return Features(pts, des.astype(np.float32) if packed else des)
+        f = compute()
+        des, packed = f.des, False
+        if des is not None and des.dtype == np.float32:
+            small = des.astype(np.uint8)
+            if np.array_equal(small, des):
+                des, packed = small, True
+        self._items[key] = (f.pts, des, packed)
+        if len(self._items) > self.capacity:
+            self._items.popitem(last=False)
+        return f
 
 
 def knn2(des_query: np.ndarray, des_train: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:

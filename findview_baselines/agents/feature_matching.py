@@ -50,6 +50,7 @@ from findview_baselines.agents.feature_base import (
     Features,
     ParallelRunner,
     Slot,
+    ViewCache,
     cv2_num_threads,
     detect,
     knn2,
@@ -175,6 +176,7 @@ class _SlotState(Slot):
 
     prev: int = RIGHT  # the action repeated when the rule has no vote
     history: deque = field(default_factory=deque)  # the last osc_window - 1 actions
+    views: ViewCache = field(default_factory=lambda: ViewCache(0))  # keypoints of the views seen this episode
 
 
 class FeatureMatchingAgent(FeatureAgent):
@@ -191,6 +193,8 @@ class FeatureMatchingAgent(FeatureAgent):
         stop_px: a match votes STOP when both displacements are below this many pixels (1.0).
         osc_window: actions in the oscillation window, this step's included (4; < 2 disables).
         osc_rule: ``"alternating"`` or ``"mixed"`` (see :func:`is_oscillating`).
+        cache_views: views per slot whose keypoints are remembered for the episode (400, a turn and more;
+            0: off). Results are the same either way (:class:`~findview_baselines.agents.feature_base.ViewCache`).
         threads, cv2_threads: see :class:`~findview_baselines.agents.feature_base.FeatureAgent`.
     """
 
@@ -210,11 +214,14 @@ class FeatureMatchingAgent(FeatureAgent):
         stop_px: float = 1.0,
         osc_window: int = 4,
         osc_rule: str = "alternating",
+        cache_views: int = 400,
         threads: int = 2,
         cv2_threads: int | None = 1,
     ) -> None:
         if detector not in DETECTORS:
             raise ValueError(f"unknown detector {detector!r}; expected one of {DETECTORS}")
+        if int(cache_views) < 0:
+            raise ValueError(f"cache_views must be >= 0 views, got {cache_views!r}")
         if osc_rule not in OSC_RULES:
             raise ValueError(f"unknown osc_rule {osc_rule!r}; expected one of {OSC_RULES}")
         if not 0.0 < float(ratio) <= 1.0:
@@ -229,6 +236,7 @@ class FeatureMatchingAgent(FeatureAgent):
         self.stop_px = float(stop_px)
         self.osc_window = int(osc_window)
         self.osc_rule = osc_rule
+        self.cache_views = int(cache_views)
         super().__init__(num_envs, device, seed, threads=threads, cv2_threads=cv2_threads)
 
     @classmethod
@@ -240,7 +248,8 @@ class FeatureMatchingAgent(FeatureAgent):
         return cls(
             num_envs, device, seed, detector=cfg.name, n_features=cfg.n_features, ratio=cfg.ratio,
             d_thresh=cfg.d_thresh, min_keypoints=cfg.min_keypoints, min_matches=cfg.min_matches, stop_px=cfg.stop_px,
-            osc_window=cfg.osc_window, osc_rule=cfg.osc_rule, threads=cfg.threads, cv2_threads=cfg.cv2_threads,
+            osc_window=cfg.osc_window, osc_rule=cfg.osc_rule, cache_views=cfg.cache_views, threads=cfg.threads,
+            cv2_threads=cfg.cv2_threads,
         )
 
     @property
@@ -255,6 +264,7 @@ class FeatureMatchingAgent(FeatureAgent):
             difficulty=None if episode is None else episode.difficulty,
             prev=LEFT if rng.integers(0, 2) == 0 else RIGHT,
             history=deque(maxlen=max(1, self.osc_window - 1)),
+            views=ViewCache(self.cache_views),
         )
 
     def prepare_target(self, slot: Slot, target: np.ndarray) -> Features:
@@ -268,7 +278,8 @@ class FeatureMatchingAgent(FeatureAgent):
     # acting --------------------------------------------------------------------------------------
     def step(self, i: int, slot: Slot, view: np.ndarray | None) -> int:
         assert view is not None
-        return self.decide(i, detect(self.detector, gray_of(view), self.n_features))
+        st: _SlotState = slot  # type: ignore[assignment]
+        return self.decide(i, st.views.get(view, lambda: detect(self.detector, gray_of(view), self.n_features)))
 
     def decide(self, i: int, cur: Features) -> int:
         """The action of slot ``i`` given its current-view features (updates the slot's history)."""
