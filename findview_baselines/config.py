@@ -257,6 +257,9 @@ class PPOAgentConfig:
     ``refine_moves`` moves) before stopping. See findview_baselines/agents/stop_refine.py."""
     refine_moves: int = 4
     """Most refinement moves per episode (with ``refine_stop``)."""
+    stop_prob: Optional[float] = None
+    """At validation / evaluation: STOP whenever the policy gives STOP at least this probability, even when a move
+    has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
     fov: float = 90.0
     """Horizontal field of view of the views, degrees (the refinement's pixels-to-degrees; configs/agent/ppo.yaml
     sets it to ${sim.fov})."""
@@ -283,6 +286,8 @@ class PPOAgentConfig:
         check(self.fine_scales >= 1, "agent.fine_scales", self.fine_scales, "a positive number of pyramid levels")
         check(self.revisit_row_stride >= 0, "agent.revisit_row_stride", self.revisit_row_stride, "0 (off) or a number of steps")
         check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
+        check(self.stop_prob is None or 0 < self.stop_prob <= 1, "agent.stop_prob", self.stop_prob,
+              "null or a probability in (0, 1]")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
 

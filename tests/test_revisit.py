@@ -175,3 +175,31 @@ def test_row_search_skips_a_row_beyond_the_pitch_limit():
     assert actions[10:14] == [UP] * 4
     assert actions[14:21] == [DOWN] * 7 and actions[21] == RIGHT
     assert int(guard.row_k[0]) == 3 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -3
+
+
+def test_stop_prob_stops_on_the_policys_own_stop_probability():
+    """A policy whose output is fixed at P = (0.1, 0.1, 0.1, 0.4, 0.3) for (UP, DOWN, LEFT, RIGHT, STOP): the
+    argmax turns RIGHT; with ``stop_prob`` 0.3 the agent stops (also with the search memory on, which would
+    otherwise forbid STOP as a non-argmax action); with 0.35 it still turns."""
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.rl.policy import Policy
+
+    policy = Policy(32, 32, "direct", hidden_size=8)
+    with torch.no_grad():
+        policy.actor.weight.zero_()
+        policy.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.1, 0.1, 0.4, 0.3])))
+    obs = {"view": torch.zeros(1, 3, 32, 32, dtype=torch.uint8), "target": torch.zeros(1, 3, 32, 32, dtype=torch.uint8)}
+
+    def first_action(**kw) -> int:
+        from findview.episode import Episode
+
+        agent = PPOAgent(policy, 1, **kw)
+        agent.reset([0], [Episode("e", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=1)])
+        return int(agent.act(obs)[0])
+
+    assert first_action() == RIGHT
+    assert first_action(stop_prob=0.3) == STOP
+    assert first_action(stop_prob=0.3, revisit_penalty=16.0) == STOP
+    assert first_action(stop_prob=0.35) == RIGHT
+    with pytest.raises(ValueError, match="stop_prob"):
+        PPOAgent(policy, 1, stop_prob=0.0)

@@ -72,6 +72,8 @@ class PPOAgent(Agent):
             moves up or down (alternately, growing); 0: off.
         refiner: a :class:`~findview_baselines.agents.stop_refine.StopRefiner` for the final refinement of the
             policy's stops (``None``: the policy's stops stand).
+        stop_prob: STOP whenever the policy gives STOP at least this probability, even when a move has more
+            (``None``: the argmax, or the sample, decides).
     """
 
     name = "ppo"
@@ -86,8 +88,12 @@ class PPOAgent(Agent):
         revisit_penalty: float = 0.0,
         revisit_row_stride: int = 0,
         refiner: StopRefiner | None = None,
+        stop_prob: float | None = None,
     ) -> None:
+        if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
+            raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
         super().__init__(num_envs, device, seed)
+        self.stop_prob = None if stop_prob is None else float(stop_prob)
         self.policy = policy.to(self.device).eval()
         self.sample = bool(sample)
         self.hidden = policy.initial_hidden(self.num_envs, self.device)
@@ -111,6 +117,7 @@ class PPOAgent(Agent):
         revisit_penalty: float = 0.0,
         revisit_row_stride: int = 0,
         refiner: StopRefiner | None = None,
+        stop_prob: float | None = None,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -144,7 +151,7 @@ class PPOAgent(Agent):
             policy.load_state_dict(state["policy"])
         except RuntimeError as err:
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
-        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner)
+        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob)
 
     @classmethod
     def from_config(
@@ -168,6 +175,7 @@ class PPOAgent(Agent):
             checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
             refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
+            stop_prob=cfg.stop_prob,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -241,6 +249,8 @@ class PPOAgent(Agent):
             a_t = torch.as_tensor(a, dtype=torch.long, device=self.device)
         else:
             a_t = logits.argmax(dim=-1)
+        if self.stop_prob is not None:  # the policy's own STOP probability, before the search memory
+            a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t
