@@ -218,9 +218,10 @@ def sim_override(agent: AgentSpec, fov: float) -> str:
 
 def runtime_overrides(agent: AgentSpec, agent_threads: int, user: Sequence[str] = ()) -> list[str]:
     """The cell's thread settings; an ``agent.threads`` the user gave (``--override``) is kept."""
+    from findview_baselines.evaluation.evaluate import override_keys
+
     out = ["progress=false", "torch_threads=1"]
-    given = {o.split("=", 1)[0].lstrip("+") for o in user}
-    if agent.agent is not None and _agent_has_threads(agent.agent) and "agent.threads" not in given:
+    if agent.agent is not None and _agent_has_threads(agent.agent) and "agent.threads" not in override_keys(user):
         out.append(f"agent.threads={agent_threads}")
     return out
 

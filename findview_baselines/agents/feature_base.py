@@ -135,9 +135,6 @@ class ViewCache:
         self._items: OrderedDict[bytes, tuple[np.ndarray, np.ndarray | None, bool]] = OrderedDict()
         self.hits = 0
 
-    def clear(self) -> None:
-        self._items.clear()
-
     def __len__(self) -> int:
         return len(self._items)
 
