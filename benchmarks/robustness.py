@@ -209,11 +209,14 @@ def data_out_dir(args: argparse.Namespace) -> str:
     return str(Path(args.out).resolve() / "data" / _sanitize(args.dataset_name or args.dataset))
 
 
-def sim_override(agent: AgentSpec, fov: float) -> str:
-    # a checkpoint brings its own view size; the rule-based agents take the FoV's preset (60: 256x192)
-    if agent.checkpoint is None and fov in (90.0, 60.0):
-        return f"sim=fov{fov_tag(fov)}"
-    return f"sim.fov={fov_tag(fov)}"
+def sim_override(agent: AgentSpec, fov: float, checkpoint_size: int | None = None) -> list[str]:
+    """The cell's view: the rule-based agents take the FoV's preset (90: 256x256, 60: 256x192); a checkpoint
+    brings its own view size unless ``checkpoint_size`` (pixels, square) is given: then it renders at that
+    size and averages it down to its network's (a multiple of it)."""
+    if agent.checkpoint is None:
+        return [f"sim=fov{fov_tag(fov)}" if fov in (90.0, 60.0) else f"sim.fov={fov_tag(fov)}"]
+    size = [f"sim.height={checkpoint_size}", f"sim.width={checkpoint_size}"] if checkpoint_size else []
+    return [f"sim.fov={fov_tag(fov)}"] + size
 
 
 def runtime_overrides(agent: AgentSpec, agent_threads: int, user: Sequence[str] = ()) -> list[str]:
@@ -236,7 +239,7 @@ def make_plan(args: argparse.Namespace, agents: Sequence[AgentSpec], corruptions
     cells: list[Cell] = []
     for agent in agents:
         for fov in args.fovs:
-            base = agent.overrides() + [sim_override(agent, fov)] + common
+            base = agent.overrides() + sim_override(agent, fov, args.checkpoint_size) + common
             todo: list[tuple[str, int]] = ([] if args.no_clear else [(CLEAR, 0)])
             todo += [(c, s) for c in corruptions for s in args.severities]
             for corruption, sev in todo:
@@ -615,6 +618,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fovs", nargs="+", type=float, default=[90.0, 60.0], help="fields of view (degrees)")
     p.add_argument("--T", "--max-steps", dest="T", type=int, default=5000, help="task.max_steps")
     p.add_argument("--max-episodes", type=int, default=None, help="max_episodes: only the first N episodes per cell")
+    p.add_argument("--checkpoint-size", type=int, default=None, metavar="PIXELS",
+                   help="render the checkpoints' views at PIXELS x PIXELS (a multiple of the network's size, which "
+                        "the agent averages down to): 256 gives a 64x64 learned agent the targets the rule-based "
+                        "agents see at FoV 90 (a corruption's kernel is in pixels); default: the checkpoint's own size")
     p.add_argument("--override", action="append", metavar="KEY=VALUE",
                    help="an extra tools/eval.py override for every cell (repeatable), e.g. --override dataset.hard_rule=and")
     p.add_argument("--out", default="outputs/robustness", help="output folder")
@@ -635,6 +642,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--severities must be in 1..5")
     if args.T < 1 or args.episodes_per_image < 1 or args.calibration_episodes < 0:
         parser.error("--T and --episodes-per-image must be >= 1, --calibration-episodes >= 0")
+    if args.checkpoint_size is not None and args.checkpoint_size < 1:
+        parser.error(f"--checkpoint-size must be a positive number of pixels, got {args.checkpoint_size}")
     args.severities = sorted(set(args.severities))
     args.fovs = list(dict.fromkeys(float(f) for f in args.fovs))
     agents = parse_agents(args.agents, parser.error)

@@ -128,8 +128,8 @@ class FeatureAgentConfig:
     """alternating (L,R,L,R / U,D,U,D) | mixed (one axis, both directions)."""
     cache_views: int = 400
     """Views per slot whose keypoints are remembered for the episode (a slot that repeats its move circles
-    and sees them again every 360 moves); 0 = off. Results do not depend on it, only speed and memory
-    (up to ~70 KB per view)."""
+    and sees them again every 360 moves); 0 = off. Results do not depend on it, only speed and memory:
+    up to ~70 KB per SIFT view, so with 16 slots at most about 450 MB (sift, 10 medium episodes: +80 MB)."""
     threads: int = 2
     """Environment slots processed in parallel (OpenCV releases the GIL)."""
     cv2_threads: Optional[int] = 1
@@ -254,7 +254,9 @@ class PPOAgentConfig:
     refine_stop: bool = False
     """At validation / evaluation: check each stop of the policy by phase correlation of view and target, and when
     the target is measured at least half a degree away move towards it (one degree per step, at most
-    ``refine_moves`` moves) before stopping. See findview_baselines/agents/stop_refine.py."""
+    ``refine_moves`` moves) before stopping. It measures on the views as rendered (on 256x256 views of a 64x64
+    network: the full-size ones); its peak threshold was chosen on 64x64 views. See
+    findview_baselines/agents/stop_refine.py."""
     refine_moves: int = 4
     """Most refinement moves per episode (with ``refine_stop``)."""
     stop_prob: Optional[float] = None

@@ -407,13 +407,18 @@ def test_rotation_agent_finds_a_motion_blurred_target_at_half_size(panos):
     equi = panos[PANOS[1]]
     e = ep((0, 30), (15, 40))
     view = render(equi, [(0, 30)])
-    firsts = []
+    from findview_baselines.config import RotationAgentConfig
+
+    firsts, full_size_only = [], []
     for seed in range(4):
         target = corrupt(render(equi, [(15, 40)]), "motion_blur", 3, generator=torch.Generator().manual_seed(seed))
-        agent = make_agent("rotation", None, 1, "cpu", 0)
-        agent.reset([0], [e])
-        firsts.append(int(agent.act(obs_of(view, target))[0]))
+        for cfg, out in ((None, firsts), (RotationAgentConfig(search_scale=1.0), full_size_only)):
+            agent = make_agent("rotation", cfg, 1, "cpu", 0)
+            agent.reset([0], [e])
+            out.append(int(agent.act(obs_of(view, target))[0]))
     assert firsts.count(UP) >= 3, firsts
+    # the control: without the half-size look (search_scale 1) the first look finds nothing to head for
+    assert full_size_only.count(UP) <= 1, full_size_only
 
 
 def test_view_cache_gives_back_the_features_it_was_given(panos):
@@ -438,6 +443,11 @@ def test_view_cache_gives_back_the_features_it_was_given(panos):
         cache.get(views[0], lambda: compute(0))
         assert calls == [0, 1, 2, 0] and len(cache) == 2
         assert ViewCache(0).get(views[0], lambda: compute(0)) is not None and len(calls) == 5
+    # the same bytes in another shape are another view
+    cache, seen = ViewCache(4), []
+    cache.get(views[0], lambda: seen.append("a") or detect("orb", gray_of(views[0])))
+    cache.get(views[0].reshape(views[0].shape[0], -1), lambda: seen.append("b") or detect("orb", gray_of(views[0])))
+    assert seen == ["a", "b"] and cache.hits == 0
 
 
 def test_sift_circling_with_the_view_cache_acts_as_without_it(panos):

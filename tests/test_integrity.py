@@ -274,6 +274,14 @@ def test_checkpoint_implies_the_learned_agent_before_validation(capsys):
     assert "agent.revisit_penalty" in capsys.readouterr().err
 
 
+def test_override_parser_reads_keys_values_and_the_last_repeat():
+    from findview_baselines.evaluation.evaluate import override_keys, override_values
+
+    argv = ["-m", "+agent.x=1", "~corruption", "sim.fov=60", "checkpoint=a=b.pth", "sim.fov=90", "--cfg"]
+    assert override_values(argv) == {"agent.x": "1", "sim.fov": "90", "checkpoint": "a=b.pth"}
+    assert override_keys(argv) == {"agent.x", "sim.fov", "checkpoint"}
+
+
 def test_user_errors_are_the_projects_own_types():
     from findview.config import ConfigError
     from findview.dataset import DatasetError, SamplingError

@@ -4,6 +4,8 @@ learned agent on views four times its network's size (the same actions as on vie
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
@@ -21,11 +23,14 @@ from findview_baselines.rl.policy import Policy
 def test_area_downsample_by_hand():
     img = torch.zeros(1, 3, 4, 4, dtype=torch.uint8)
     img[0, 0] = torch.tensor([[0, 2, 10, 10], [1, 2, 10, 10], [255, 255, 0, 0], [255, 254, 0, 1]], dtype=torch.uint8)
+    img[0, 1] = torch.tensor([[1, 2, 2, 3], [1, 2, 2, 3], [3, 4, 0, 0], [3, 4, 0, 0]], dtype=torch.uint8)
     out = area_downsample(img, 2)
     assert out.dtype == torch.uint8 and out.shape == (1, 3, 2, 2)
     # block means 1.25, 10, 254.75, 0.25 -> rounded to the nearest level
     assert out[0, 0].tolist() == [[1, 10], [255, 0]]
-    assert out[0, 1:].eq(0).all()
+    # ties 1.5, 2.5, 3.5 -> the even level: 2, 2, 4
+    assert out[0, 1].tolist() == [[2, 2], [4, 0]]
+    assert out[0, 2].eq(0).all()
     assert area_downsample(img, 1) is img
 
 
@@ -55,7 +60,10 @@ def test_downsampled_env_feeds_a_trainer_averaged_views(images):
     obs = env.reset()
     assert obs["view"].shape == (3, 3, 32, 32) and torch.equal(obs["view"], area_downsample(env.env.view, 2))
     assert torch.equal(env.target, area_downsample(env.env.target, 2))
+    assert {k: v.shape for k, v in env.observations.items()} == {"view": (3, 3, 32, 32), "target": (3, 3, 32, 32)}
+    assert torch.equal(env.observations["target"], obs["target"])
     assert env.num_envs == 3 and env.pitch is env.env.pitch
+    assert copy.copy(env).num_envs == 3  # attribute fall-through survives a copy (no recursion on `env`)
     obs, _, _, _ = env.step(torch.tensor([0, 1, 2]))
     assert torch.equal(obs["view"], area_downsample(env.env.view, 2))
 

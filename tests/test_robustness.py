@@ -99,3 +99,32 @@ def test_user_agent_threads_are_not_overridden():
     for cell in plan():
         assert len([o for o in cell.runtime if o.startswith("agent.threads=")]) == 1, cell.name
         assert not any(o.startswith("agent.threads=") for o in cell.overrides), cell.name
+
+
+def test_checkpoint_size_renders_only_the_checkpoints_larger():
+    """``--checkpoint-size 256`` gives the checkpoint's cells 256x256 views (at every FoV), while the rule-based
+    agents keep their FoV preset (60: ``sim=fov60``, 256x192, with no size override that would square it)."""
+    ckpt = str(REPO / "pretrained" / "findview_sun360mini_indoor_robust.pth")
+
+    def plan(*extra: str) -> list:
+        args = robustness.build_parser().parse_args(
+            ["--agents", "rotation", f"checkpoint={ckpt}", "--corruptions", "fog", "--severities", "3",
+             "--fovs", "90", "60", *extra])
+        args.fovs = [float(f) for f in args.fovs]
+        agents = robustness.parse_agents(args.agents, AssertionError)
+        return robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
+
+    def sizes(cell) -> list[str]:
+        return [o for o in cell.overrides if o.startswith(("sim=", "sim.height=", "sim.width=", "sim.fov="))]
+
+    cells = plan("--checkpoint-size", "256")
+    assert len(cells) == 8  # 2 agents x 2 FoVs x (fog 3 + clear)
+    for cell in cells:
+        fov = "90" if cell.fov == 90.0 else "60"
+        if cell.agent.checkpoint:
+            assert sizes(cell) == [f"sim.fov={fov}", "sim.height=256", "sim.width=256"], cell.name
+        else:
+            assert sizes(cell) == [f"sim=fov{fov}"], cell.name
+    for cell in plan():  # default: the checkpoint's own size (no size override)
+        if cell.agent.checkpoint:
+            assert not any(o.startswith(("sim.height=", "sim.width=")) for o in cell.overrides), cell.name

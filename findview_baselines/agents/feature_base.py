@@ -139,10 +139,13 @@ class ViewCache:
         return len(self._items)
 
     def get(self, view: np.ndarray, compute: Callable[[], Features]) -> Features:
-        """The features of ``view`` (any array; its bytes are the key): cached, else ``compute()`` (stored)."""
+        """The features of ``view`` (any array; its shape, dtype and bytes are the key): cached, else
+        ``compute()`` (stored)."""
         if self.capacity <= 0:
             return compute()
-        key = hashlib.blake2b(np.ascontiguousarray(view).data, digest_size=16).digest()
+        h = hashlib.blake2b(f"{view.shape}{view.dtype.str}".encode(), digest_size=16)
+        h.update(np.ascontiguousarray(view).data)
+        key = h.digest()
         item = self._items.get(key)
         if item is not None:
             self._items.move_to_end(key)

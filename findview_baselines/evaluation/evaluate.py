@@ -34,6 +34,7 @@ log = logging.getLogger("findview.eval")
 __all__ = [
     "EvalError",
     "EpisodeToolConfig",
+    "override_values",
     "override_keys",
     "checkpoint_implies_agent",
     "make_dataset_command",
@@ -59,19 +60,23 @@ class EvalError(UserError):
     """A user-facing configuration / input problem (the tools print the message, no traceback)."""
 
 
+def override_values(overrides: Sequence[str]) -> dict[str, str]:
+    """``{key: value}`` of the ``key=value`` overrides of a command line (``+`` / ``~`` prefixes dropped, flags
+    ignored; a later override of a key wins). The one parser of overrides of this module."""
+    return {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in overrides if "=" in o and not o.startswith("-")}
+
+
 def override_keys(overrides: Sequence[str]) -> set[str]:
-    """The keys a command line sets: ``sim.fov`` for ``sim.fov=60``, ``agent`` for a group choice ``agent=sift``
-    (``+`` / ``~`` prefixes dropped; flags ignored). The one parser of overrides of this module."""
-    return {o.split("=", 1)[0].lstrip("+~") for o in overrides if "=" in o and not o.startswith("-")}
+    """The keys a command line sets: ``sim.fov`` for ``sim.fov=60``, ``agent`` for a group choice ``agent=sift``."""
+    return set(override_values(overrides))
 
 
 def checkpoint_implies_agent(argv: list[str]) -> list[str]:
     """``tools/eval.py`` arguments with ``agent=ppo`` added when ``checkpoint=<path>`` is given without an
     ``agent=`` choice, so that the learned agent's keys (``agent.revisit_penalty=0``, ...) are valid
     overrides in every job (for :func:`findview_baselines.cli.run_tool`'s ``implied``)."""
-    values = {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in argv if "=" in o and not o.startswith("-")}
-    has_checkpoint = values.get("checkpoint", "") not in ("", "null", "None")
-    if has_checkpoint and "agent" not in override_keys(argv):
+    values = override_values(argv)
+    if values.get("checkpoint", "") not in ("", "null", "None") and "agent" not in values:
         return [*argv, "agent=ppo"]
     return argv
 

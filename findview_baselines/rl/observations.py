@@ -31,7 +31,8 @@ def downsample_factor(size: tuple[int, int], network: tuple[int, int]) -> int | 
 
 def area_downsample(images: torch.Tensor, k: int) -> torch.Tensor:
     """``(N, 3, k H, k W)`` uint8 -> ``(N, 3, H, W)`` uint8: the mean of each ``k x k`` block, rounded to the
-    nearest grey level (``k = 1``: the images themselves, not copied). Any device."""
+    nearest grey level, a tie to the even one (1.5 -> 2, 2.5 -> 2; ``k = 1``: the images themselves, not
+    copied). Any device; the block sums are exact in float32, so CPU and CUDA give the same bytes."""
     if k == 1:
         return images
     return torch.nn.functional.avg_pool2d(images.float(), k).round_().to(torch.uint8)
@@ -69,6 +70,10 @@ class DownsampledEnv:
         return self._obs(self.env.load_state_dict(state))
 
     @property
+    def observations(self) -> dict[str, torch.Tensor]:
+        return self._obs(self.env.observations)
+
+    @property
     def view(self) -> torch.Tensor:
         return area_downsample(self.env.view, self.k)
 
@@ -77,4 +82,6 @@ class DownsampledEnv:
         return area_downsample(self.env.target, self.k)
 
     def __getattr__(self, name: str) -> Any:  # poses, episodes, sim, num_envs, device, state_dict, ...
+        if name == "env":  # not set yet (a copy or unpickling before __init__): no endless recursion
+            raise AttributeError(name)
         return getattr(self.env, name)
