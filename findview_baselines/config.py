@@ -127,9 +127,9 @@ class FeatureAgentConfig:
     osc_rule: str = "alternating"
     """alternating (L,R,L,R / U,D,U,D) | mixed (one axis, both directions)."""
     cache_views: int = 400
-    """Views per slot whose keypoints are remembered for the episode (a slot that repeats its move circles
-    and sees them again every 360 moves); 0 = off. Results do not depend on it, only speed and memory:
-    up to ~70 KB per SIFT view, so with 16 slots at most about 450 MB (sift, 10 medium episodes: +80 MB)."""
+    """Views per slot whose vote (detection and matching against the target) is remembered for the episode (a
+    slot that repeats its move circles and sees them again every 360 moves); 0 = off. Results do not depend on
+    it, only speed (a hit costs a hash of the view); memory: a key and a vote per view."""
     threads: int = 2
     """Environment slots processed in parallel (OpenCV releases the GIL)."""
     cv2_threads: Optional[int] = 1

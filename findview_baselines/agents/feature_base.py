@@ -119,12 +119,11 @@ def detect(kind: str, gray: np.ndarray, n_features: int = 500) -> Features:
 
 
 class ViewCache:
-    """The keypoints of the views a slot has seen, by the views' bytes (least recently used dropped beyond
-    ``capacity``). An episode that runs in circles (the paper's rule repeats its last move when nothing
-    matches) sees the same views again every 360 moves; detection is the costly part of a step, and the
-    same view gives the same keypoints, so results do not change. SIFT descriptors, whole numbers in
-    [0, 255] as OpenCV computes them, are kept as uint8 (a quarter of the memory) and given back as
-    float32, exactly.
+    """What a slot computed from each view it has seen (the feature rule: its vote), by the view's shape,
+    dtype and bytes; the least recently used view is dropped beyond ``capacity``. An episode that runs in
+    circles (the paper's rule repeats its last move when nothing matches) sees the same views again every
+    360 moves. Detection and matching are the costly part of a step and depend on nothing but the view
+    once the episode's target is fixed, so a hit gives exactly what computing would, for the cost of a hash.
 
     Args:
         capacity: views kept (0: the cache is off).
@@ -132,36 +131,28 @@ class ViewCache:
 
     def __init__(self, capacity: int) -> None:
         self.capacity = int(capacity)
-        self._items: OrderedDict[bytes, tuple[np.ndarray, np.ndarray | None, bool]] = OrderedDict()
+        self._items: OrderedDict[bytes, Any] = OrderedDict()
         self.hits = 0
 
     def __len__(self) -> int:
         return len(self._items)
 
-    def get(self, view: np.ndarray, compute: Callable[[], Features]) -> Features:
-        """The features of ``view`` (any array; its shape, dtype and bytes are the key): cached, else
-        ``compute()`` (stored)."""
+    def get(self, view: np.ndarray, compute: Callable[[], _R]) -> _R:
+        """The value for ``view``: cached, else ``compute()`` (stored)."""
         if self.capacity <= 0:
             return compute()
         h = hashlib.blake2b(f"{view.shape}{view.dtype.str}".encode(), digest_size=16)
         h.update(np.ascontiguousarray(view).data)
         key = h.digest()
-        item = self._items.get(key)
-        if item is not None:
+        if key in self._items:
             self._items.move_to_end(key)
             self.hits += 1
-            pts, des, packed = item
-            return Features(pts, des.astype(np.float32) if packed else des)
-        f = compute()
-        des, packed = f.des, False
-        if des is not None and des.dtype == np.float32:
-            small = des.astype(np.uint8)
-            if np.array_equal(small, des):
-                des, packed = small, True
-        self._items[key] = (f.pts, des, packed)
+            return self._items[key]
+        value = compute()
+        self._items[key] = value
         if len(self._items) > self.capacity:
             self._items.popitem(last=False)
-        return f
+        return value
 
 
 def knn2(des_query: np.ndarray, des_train: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:

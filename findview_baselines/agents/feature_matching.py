@@ -176,7 +176,7 @@ class _SlotState(Slot):
 
     prev: int = RIGHT  # the action repeated when the rule has no vote
     history: deque = field(default_factory=deque)  # the last osc_window - 1 actions
-    views: ViewCache = field(default_factory=lambda: ViewCache(0))  # keypoints of the views seen this episode
+    views: ViewCache = field(default_factory=lambda: ViewCache(0))  # the rule's vote on each view seen this episode
 
 
 class FeatureMatchingAgent(FeatureAgent):
@@ -193,8 +193,9 @@ class FeatureMatchingAgent(FeatureAgent):
         stop_px: a match votes STOP when both displacements are below this many pixels (1.0).
         osc_window: actions in the oscillation window, this step's included (4; < 2 disables).
         osc_rule: ``"alternating"`` or ``"mixed"`` (see :func:`is_oscillating`).
-        cache_views: views per slot whose keypoints are remembered for the episode (400, a turn and more;
-            0: off). Results are the same either way (:class:`~findview_baselines.agents.feature_base.ViewCache`).
+        cache_views: views per slot whose vote (detection and matching against the target) is remembered
+            for the episode (400, a turn and more; 0: off). Results are the same either way
+            (:class:`~findview_baselines.agents.feature_base.ViewCache`).
         threads, cv2_threads: see :class:`~findview_baselines.agents.feature_base.FeatureAgent`.
     """
 
@@ -279,22 +280,30 @@ class FeatureMatchingAgent(FeatureAgent):
     def step(self, i: int, slot: Slot, view: np.ndarray | None) -> int:
         assert view is not None
         st: _SlotState = slot  # type: ignore[assignment]
-        return self.decide(i, st.views.get(view, lambda: detect(self.detector, gray_of(view), self.n_features)))
+        vote = st.views.get(view, lambda: self.vote(i, detect(self.detector, gray_of(view), self.n_features)))
+        return self.decide(i, vote)
 
-    def decide(self, i: int, cur: Features) -> int:
-        """The action of slot ``i`` given its current-view features (updates the slot's history)."""
-        st = self.slots[i]
-        tgt = st.target
+    def vote(self, i: int, cur: Features) -> int | None:
+        """The matches' vote of slot ``i`` on a view with features ``cur`` (a move or STOP), ``None`` when
+        there are too few keypoints or matches, or no majority. A function of the view alone once the
+        episode's target (and so its features and threshold) is fixed."""
+        tgt = self.slots[i].target
         assert tgt is not None
-        a: int | None = None
-        if len(tgt) >= self.min_keypoints and len(cur) >= self.min_keypoints:
-            ci, ti, dist = match_features(cur, tgt, self.detector, self.ratio)
-            if len(ci) >= self.min_matches:
-                keep = dist <= self.threshold(i)
-                disp = tgt.pts[ti[keep]] - cur.pts[ci[keep]]
-                a = vote_action(disp, self.stop_px)
-                if a is not None and a != STOP and is_oscillating(st.history, a, self.osc_window, self.osc_rule):
-                    a = STOP
+        if len(tgt) < self.min_keypoints or len(cur) < self.min_keypoints:
+            return None
+        ci, ti, dist = match_features(cur, tgt, self.detector, self.ratio)
+        if len(ci) < self.min_matches:
+            return None
+        keep = dist <= self.threshold(i)
+        return vote_action(tgt.pts[ti[keep]] - cur.pts[ci[keep]], self.stop_px)
+
+    def decide(self, i: int, vote: int | None) -> int:
+        """The action of slot ``i`` given its vote on the current view (updates the slot's history): an
+        oscillating move becomes STOP, no vote repeats the previous action."""
+        st = self.slots[i]
+        a = vote
+        if a is not None and a != STOP and is_oscillating(st.history, a, self.osc_window, self.osc_rule):
+            a = STOP
         if a is None:
             a = st.prev
         st.history.append(a)
