@@ -309,7 +309,10 @@ class Runner:
             self.stopping = True
             for p in list(self.live):
                 if p.poll() is None:
-                    p.send_signal(signal.SIGINT)  # tools/eval.py: Ctrl-C writes nothing, exit 130
+                    # SIGTERM, not SIGINT: a job started in the background of a shell ignores SIGINT, and so
+                    # do its children. A stopped tools/eval.py has written no summary.json (written last,
+                    # atomically), so the cell is simply run again on resume.
+                    p.terminate()
 
 
 def eval_command(cell: Cell) -> list[str]:

@@ -128,3 +128,31 @@ def test_checkpoint_size_renders_only_the_checkpoints_larger():
     for cell in plan():  # default: the checkpoint's own size (no size override)
         if cell.agent.checkpoint:
             assert not any(o.startswith(("sim.height=", "sim.width=")) for o in cell.overrides), cell.name
+
+
+def test_stopping_ends_a_job_that_ignores_sigint():
+    """Ctrl-C / SIGTERM of the benchmark stops its running tools/eval.py jobs, even when they ignore SIGINT
+    (as every job started in the background of a non-interactive shell does)."""
+    import signal
+    import threading
+    import time
+
+    runner = robustness.Runner()
+    result: list = []
+    t = threading.Thread(target=lambda: result.append(runner.run([sys.executable, "-c", "import time; time.sleep(60)"])))
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the child inherits SIGINT ignored, from its start
+    try:
+        t.start()
+        deadline = time.monotonic() + 30
+        while not runner.live and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert runner.live
+    t0 = time.monotonic()
+    runner.stop()
+    t.join(timeout=30)
+    assert not t.is_alive() and time.monotonic() - t0 < 20
+    rc, _, _ = result[0]
+    assert rc != 0
+    assert runner.run([sys.executable, "-c", "pass"])[0] == 130  # nothing new starts once stopping
