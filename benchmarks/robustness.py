@@ -219,6 +219,27 @@ def sim_override(agent: AgentSpec, fov: float, checkpoint_size: int | None = Non
     return [f"sim.fov={fov_tag(fov)}"] + size
 
 
+def checkpoint_size_problems(agents: Sequence[AgentSpec], size: int | None) -> list[str]:
+    """Why ``--checkpoint-size size`` cannot be rendered for a checkpoint: its network takes ``h x w`` and
+    ``size x size`` is not ``k h x k w`` (empty: every checkpoint can)."""
+    if size is None:
+        return []
+    from findview_baselines.rl.checkpoint import load_checkpoint
+    from findview_baselines.rl.observations import downsample_factor
+
+    out = []
+    for a in agents:
+        if a.checkpoint:
+            sig = load_checkpoint(a.checkpoint, key="checkpoint")["signature"]
+            h, w = int(sig["height"]), int(sig["width"])
+            if downsample_factor((size, size), (h, w)) is None:
+                hint = (f"a whole multiple of {h} (e.g. {4 * h})" if h == w else
+                        "none: its views are not square (use --override sim.height=... --override sim.width=...)")
+                out.append(f"--checkpoint-size {size}: checkpoint {a.checkpoint} takes {h}x{w} (height x width) "
+                           f"views; expected {hint}")
+    return out
+
+
 def runtime_overrides(agent: AgentSpec, agent_threads: int, user: Sequence[str] = ()) -> list[str]:
     """The cell's thread settings; an ``agent.threads`` the user gave (``--override``) is kept."""
     from findview_baselines.evaluation.evaluate import override_keys
@@ -330,7 +351,7 @@ def run_cell(runner: Runner, cell: Cell, fingerprints: Mapping[str, str]) -> tup
 def run_pool(runner: Runner, cells: Sequence[Cell], fingerprints: Mapping[str, str], jobs: int,
              report: Any = None) -> dict[str, tuple[int, float]]:
     """Run ``cells`` on ``jobs`` parallel subprocesses (in the given order); ``report(cell, rc, wall)`` as each
-    ends. Ctrl-C / SIGTERM: the running jobs get SIGINT (they write nothing), the others never start."""
+    ends. Ctrl-C / SIGTERM: the running jobs get SIGTERM (they write nothing), the others never start."""
     results: dict[str, tuple[int, float]] = {}
     pool = ThreadPoolExecutor(max_workers=max(1, min(jobs, len(cells))))
     pending: dict[Future, Cell] = {pool.submit(run_cell, runner, c, fingerprints): c for c in cells}
@@ -650,6 +671,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.severities = sorted(set(args.severities))
     args.fovs = list(dict.fromkeys(float(f) for f in args.fovs))
     agents = parse_agents(args.agents, parser.error)
+    if args.checkpoint_size is not None and not any(a.checkpoint for a in agents):
+        print(f"robustness: --checkpoint-size {args.checkpoint_size} is ignored: no checkpoint among the agents",
+              file=sys.stderr)
+    for problem in checkpoint_size_problems(agents, args.checkpoint_size):
+        parser.error(problem)
     corruptions = parse_corruptions(args.corruptions, parser.error)
     if not corruptions and args.no_clear:
         parser.error("nothing to run: no corruption and --no-clear")

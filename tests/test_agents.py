@@ -484,6 +484,42 @@ def test_sift_circling_with_the_view_cache_acts_as_without_it(panos):
     assert hits >= 10 and no_hits == 0
 
 
+def test_orb_view_cache_replays_real_votes_across_episodes(panos):
+    """Scripted back-and-forth sweeps past targets in view (the poses do not follow the actions, so views
+    repeat while the rule votes moves and STOP): two slots, two episodes with other targets and difficulties
+    (a per-difficulty ``d_thresh``). With the cache the actions are those without it, the cache has hits, and
+    it starts empty for each new episode (a cached vote is only valid for its own target)."""
+    views: dict[tuple[int, int, int], torch.Tensor] = {}
+
+    def view(k: int, p: int, y: int) -> torch.Tensor:
+        if (k, p, y) not in views:
+            views[(k, p, y)] = render(panos[PANOS[k]], [(p, y)], h=128, w=128)
+        return views[(k, p, y)]
+
+    sweep = [(0, y) for y in [*range(0, 10), *range(10, -1, -1)]] * 2
+    episodes = [((0, 6), "easy", (0, 3), "hard"), ((0, 2), "medium", (0, 8), "easy")]
+    runs = []
+    for cache_views in (400, 0):
+        agent = make_agent("orb", agent_cfg("orb", cache_views=cache_views,
+                                            d_thresh={"easy": 40.0, "medium": 30.0, "hard": float("inf")}), 2, "cpu", 0)
+        actions, hits = [], []
+        for n, (t0, d0, t1, d1) in enumerate(episodes):
+            agent.reset([0, 1], [ep((0, 0), t0, d0, f"a{n}"), ep((0, 0), t1, d1, f"b{n}")])
+            assert all(len(s.views) == 0 for s in agent.slots)
+            target = torch.cat([view(0, *t0), view(1, *t1)])
+            for p, y in sweep:
+                actions.append(agent.act(obs_of(torch.cat([view(0, p, y), view(1, p, y)]), target)).tolist())
+                for s in agent.slots:  # keep both slots acting after a STOP: the sweep is scripted
+                    s.done = False
+            hits.append(sum(s.views.hits for s in agent.slots))
+        runs.append((actions, hits))
+    (cached, hits), (plain, no_hits) = runs
+    assert cached == plain
+    assert all(h >= 10 for h in hits) and no_hits == [0, 0]
+    taken = {a for step in cached for a in step}
+    assert STOP in taken and len(taken - {STOP}) >= 2  # real votes: STOP and moves
+
+
 def test_rotation_agent_identical_and_flat(panos):
     view = render(panos[PANOS[0]], [(5, 30)])
     grey = torch.full((1, 3, H, W), 128, dtype=torch.uint8)

@@ -156,3 +156,16 @@ def test_stopping_ends_a_job_that_ignores_sigint():
     rc, _, _ = result[0]
     assert rc != 0
     assert runner.run([sys.executable, "-c", "pass"])[0] == 130  # nothing new starts once stopping
+
+
+def test_checkpoint_size_that_is_not_a_multiple_is_refused_before_running(tmp_path, capsys):
+    """A size the checkpoint's network (64x64) cannot average down to stops the command at once, naming the
+    checkpoint and the sizes; nothing is run."""
+    import pytest
+
+    ckpt = str(REPO / "pretrained" / "findview_sun360mini_indoor_robust.pth")
+    with pytest.raises(SystemExit):
+        robustness.main(["--agents", f"checkpoint={ckpt}", "--checkpoint-size", "100", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert "--checkpoint-size 100" in err and ckpt in err and "64x64" in err and "256" in err
+    assert not (tmp_path / "o").exists()
