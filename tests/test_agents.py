@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from pathlib import Path
 
@@ -101,6 +102,12 @@ class TinyEnv:
 
     def eps(self) -> int:
         return int(l1_distance(self.pitch, self.yaw, self.ep.target_pitch, self.ep.target_yaw))
+
+
+def pose_views(equi: torch.Tensor, h: int = 128, w: int = 128):
+    """``at(p, y)``: the ``(1, 3, h, w)`` view of ``equi`` at pitch ``p``, yaw ``y`` (degrees), each pose
+    rendered once (the scripted walks of the view-cache tests revisit poses)."""
+    return functools.lru_cache(maxsize=None)(lambda p, y: render(equi, [(p, y)], h=h, w=w))
 
 
 def agent_cfg(name: str, **values):
@@ -459,12 +466,7 @@ def test_sift_circling_with_the_view_cache_acts_as_without_it(panos):
     sees the same views again after a turn. With the cache those views are not detected and matched again
     (hits), and the actions are the ones of the agent without the cache."""
     target = render(panos[PANOS[0]], [(10, 50)], h=128, w=128)
-    rendered: dict[tuple[int, int], torch.Tensor] = {}
-
-    def view_at(p: int, y: int) -> torch.Tensor:
-        if (p, y) not in rendered:
-            rendered[(p, y)] = render(panos[PANOS[1]], [(p, y)], h=128, w=128)
-        return rendered[(p, y)]
+    view_at = pose_views(panos[PANOS[1]])
 
     runs = []
     for cache_views in (400, 0):
@@ -489,13 +491,7 @@ def test_orb_view_cache_replays_real_votes_across_episodes(panos):
     repeat while the rule votes moves and STOP): two slots, two episodes with other targets and difficulties
     (a per-difficulty ``d_thresh``). With the cache the actions are those without it, the cache has hits, and
     it starts empty for each new episode (a cached vote is only valid for its own target)."""
-    views: dict[tuple[int, int, int], torch.Tensor] = {}
-
-    def view(k: int, p: int, y: int) -> torch.Tensor:
-        if (k, p, y) not in views:
-            views[(k, p, y)] = render(panos[PANOS[k]], [(p, y)], h=128, w=128)
-        return views[(k, p, y)]
-
+    at = [pose_views(panos[PANOS[0]]), pose_views(panos[PANOS[1]])]
     sweep = [(0, y) for y in [*range(0, 10), *range(10, -1, -1)]] * 2
     episodes = [((0, 6), "easy", (0, 3), "hard"), ((0, 2), "medium", (0, 8), "easy")]
     runs = []
@@ -506,9 +502,9 @@ def test_orb_view_cache_replays_real_votes_across_episodes(panos):
         for n, (t0, d0, t1, d1) in enumerate(episodes):
             agent.reset([0, 1], [ep((0, 0), t0, d0, f"a{n}"), ep((0, 0), t1, d1, f"b{n}")])
             assert all(len(s.views) == 0 for s in agent.slots)
-            target = torch.cat([view(0, *t0), view(1, *t1)])
+            target = torch.cat([at[0](*t0), at[1](*t1)])
             for p, y in sweep:
-                actions.append(agent.act(obs_of(torch.cat([view(0, p, y), view(1, p, y)]), target)).tolist())
+                actions.append(agent.act(obs_of(torch.cat([at[0](p, y), at[1](p, y)]), target)).tolist())
                 for s in agent.slots:  # keep both slots acting after a STOP: the sweep is scripted
                     s.done = False
             hits.append(sum(s.views.hits for s in agent.slots))

@@ -5,10 +5,14 @@ contrast at severities 1 and 3, FoV 90, T = 30) runs, writes the tables and the 
 from __future__ import annotations
 
 import json
+import signal
 import sys
+import threading
+import time
 from pathlib import Path
 
 import cv2
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 ARGS = ["--agents", "random", "--corruptions", "fog", "contrast", "--severities", "1", "3", "--fovs", "90",
@@ -19,6 +23,16 @@ CELLS = ["random_fov90_clear", "random_fov90_contrast_s1", "random_fov90_contras
 
 sys.path.insert(0, str(REPO / "benchmarks"))
 import robustness  # noqa: E402  (benchmarks/robustness.py)
+
+ROBUST_CKPT = str(REPO / "pretrained" / "findview_sun360mini_indoor_robust.pth")
+
+
+def plan(*argv: str) -> list:
+    """The cells ``benchmarks/robustness.py`` would run for ``argv`` (nothing is run)."""
+    args = robustness.build_parser().parse_args(list(argv))
+    args.fovs = [float(f) for f in args.fovs]
+    agents = robustness.parse_agents(args.agents, AssertionError)
+    return robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
 
 
 def bench(capsys, out: Path, *extra: str) -> str:
@@ -86,17 +100,11 @@ def test_robustness_benchmark_end_to_end(tmp_path, capsys, monkeypatch):
 def test_user_agent_threads_are_not_overridden():
     """``--override agent.threads=1`` reaches every cell's command; the tool's own thread count (appended
     after the user's overrides, where it would win) is only added when the user set none."""
-    def plan(*extra: str) -> list:
-        args = robustness.build_parser().parse_args(
-            ["--agents", "rotation", "--corruptions", "fog", "--severities", "3", "--fovs", "90", *extra])
-        args.fovs = [float(f) for f in args.fovs]
-        agents = robustness.parse_agents(args.agents, AssertionError)
-        return robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
-
-    for cell in plan("--override", "agent.threads=1"):
+    base = ["--agents", "rotation", "--corruptions", "fog", "--severities", "3", "--fovs", "90"]
+    for cell in plan(*base, "--override", "agent.threads=1"):
         threads = [o for o in cell.overrides + cell.runtime if o.startswith("agent.threads=")]
         assert threads == ["agent.threads=1"], cell.name
-    for cell in plan():
+    for cell in plan(*base):
         assert len([o for o in cell.runtime if o.startswith("agent.threads=")]) == 1, cell.name
         assert not any(o.startswith("agent.threads=") for o in cell.overrides), cell.name
 
@@ -104,20 +112,13 @@ def test_user_agent_threads_are_not_overridden():
 def test_checkpoint_size_renders_only_the_checkpoints_larger():
     """``--checkpoint-size 256`` gives the checkpoint's cells 256x256 views (at every FoV), while the rule-based
     agents keep their FoV preset (60: ``sim=fov60``, 256x192, with no size override that would square it)."""
-    ckpt = str(REPO / "pretrained" / "findview_sun360mini_indoor_robust.pth")
-
-    def plan(*extra: str) -> list:
-        args = robustness.build_parser().parse_args(
-            ["--agents", "rotation", f"checkpoint={ckpt}", "--corruptions", "fog", "--severities", "3",
-             "--fovs", "90", "60", *extra])
-        args.fovs = [float(f) for f in args.fovs]
-        agents = robustness.parse_agents(args.agents, AssertionError)
-        return robustness.make_plan(args, agents, robustness.parse_corruptions(args.corruptions, AssertionError))
+    base = ["--agents", "rotation", f"checkpoint={ROBUST_CKPT}", "--corruptions", "fog", "--severities", "3",
+            "--fovs", "90", "60"]
 
     def sizes(cell) -> list[str]:
         return [o for o in cell.overrides if o.startswith(("sim=", "sim.height=", "sim.width=", "sim.fov="))]
 
-    cells = plan("--checkpoint-size", "256")
+    cells = plan(*base, "--checkpoint-size", "256")
     assert len(cells) == 8  # 2 agents x 2 FoVs x (fog 3 + clear)
     for cell in cells:
         fov = "90" if cell.fov == 90.0 else "60"
@@ -125,7 +126,7 @@ def test_checkpoint_size_renders_only_the_checkpoints_larger():
             assert sizes(cell) == [f"sim.fov={fov}", "sim.height=256", "sim.width=256"], cell.name
         else:
             assert sizes(cell) == [f"sim=fov{fov}"], cell.name
-    for cell in plan():  # default: the checkpoint's own size (no size override)
+    for cell in plan(*base):  # default: the checkpoint's own size (no size override)
         if cell.agent.checkpoint:
             assert not any(o.startswith(("sim.height=", "sim.width=")) for o in cell.overrides), cell.name
 
@@ -133,10 +134,6 @@ def test_checkpoint_size_renders_only_the_checkpoints_larger():
 def test_stopping_ends_a_job_that_ignores_sigint():
     """Ctrl-C / SIGTERM of the benchmark stops its running tools/eval.py jobs, even when they ignore SIGINT
     (as every job started in the background of a non-interactive shell does)."""
-    import signal
-    import threading
-    import time
-
     runner = robustness.Runner()
     result: list = []
     t = threading.Thread(target=lambda: result.append(runner.run([sys.executable, "-c", "import time; time.sleep(60)"])))
@@ -161,11 +158,8 @@ def test_stopping_ends_a_job_that_ignores_sigint():
 def test_checkpoint_size_that_is_not_a_multiple_is_refused_before_running(tmp_path, capsys):
     """A size the checkpoint's network (64x64) cannot average down to stops the command at once, naming the
     checkpoint and the sizes; nothing is run."""
-    import pytest
-
-    ckpt = str(REPO / "pretrained" / "findview_sun360mini_indoor_robust.pth")
     with pytest.raises(SystemExit):
-        robustness.main(["--agents", f"checkpoint={ckpt}", "--checkpoint-size", "100", "--out", str(tmp_path / "o")])
+        robustness.main(["--agents", f"checkpoint={ROBUST_CKPT}", "--checkpoint-size", "100", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
-    assert "--checkpoint-size 100" in err and ckpt in err and "64x64" in err and "256" in err
+    assert "--checkpoint-size 100" in err and ROBUST_CKPT in err and "64x64" in err and "256" in err
     assert not (tmp_path / "o").exists()
