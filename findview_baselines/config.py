@@ -232,7 +232,7 @@ class PPOAgentConfig:
     hidden_size: int = 512
     """Encoder feature size and GRU state size."""
     fine_shifts: int = 0
-    """correlation / direct / robust only: fine photometric cost map of view vs target for pixel shifts -k..k per
+    """correlation / direct / robust / phase only: fine photometric cost map of view vs target for pixel shifts -k..k per
     axis at the full input resolution (k = fine_shifts pixels; 0 = off). Part of the checkpoint signature."""
     fine_scales: int = 1
     """Pyramid levels of that cost map (2x average pooling per level; level s covers k * 2^s pixels);

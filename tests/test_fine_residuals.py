@@ -58,7 +58,7 @@ def test_fine_shifts_changes_the_fuse_input_and_validates() -> None:
     obs["target"] = obs["view"].clone()
     dist, values, hidden = on(obs, on.initial_hidden(4), torch.ones(4))
     assert dist.logits.shape == (4, 5) and torch.isfinite(dist.logits).all() and hidden.shape == (4, 16)
-    with pytest.raises(ValueError, match="fine_shifts=1 needs variant 'correlation', 'direct' or 'robust'"):
+    with pytest.raises(ValueError, match=r"fine_shifts=1 needs one of the variants \(.*'phase'\), got 'early_fusion'"):
         Policy(64, 64, "early_fusion", 16, fine_shifts=1)
     with pytest.raises(ValueError, match="fine_shifts=9"):
         CorrelationEncoder(32, 32, 16, fine_shifts=9)

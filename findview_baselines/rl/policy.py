@@ -33,6 +33,11 @@ Variants (``variant`` in ``configs/agent/ppo.yaml``):
   of ``fine_shifts`` / ``fine_scales``, and a colour thumbnail of both images for the search) feed a small
   conv head and MLP -> F = hidden_size. Cheap to train on a CPU (no gradient through image convolutions);
   see :class:`DirectEncoder`.
+- ``robust``: ``direct`` on photometrically normalised images (standardised colours, high-passed grey for
+  the fine pyramid), for corrupted targets.
+- ``phase``: ``robust`` plus band-limited phase correlation of view and target (two correlation surfaces
+  on the coarse volume's shift bins, their peaks and the values around zero shift; see
+  :class:`PhaseCorrelation`): a direction and a stop cue that ignore intensity changes.
 
 Auxiliary rotation loss (any variant, training only): :class:`AuxHead` regresses ``(dpitch, dyaw) / fov``
 and classifies overlap from the features before the GRU (``Policy.forward_features``); see
@@ -121,10 +126,11 @@ __all__ = [
     "check_signature",
 ]
 
-#: the policy variants (``agent.variant``); ``robust`` is ``direct`` on photometrically normalised images
-VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct", "robust")
+#: the policy variants (``agent.variant``); ``robust`` is ``direct`` on photometrically normalised images,
+#: ``phase`` is ``robust`` with phase-correlation surfaces
+VARIANTS = ("early_fusion", "goal_encoder", "siamese", "correlation", "direct", "robust", "phase")
 #: the variants with a fine cost pyramid (``agent.fine_shifts``)
-FINE_VARIANTS = ("correlation", "direct", "robust")
+FINE_VARIANTS = ("correlation", "direct", "robust", "phase")
 #: the variants whose encoder is a stack of learned convolutions over the whole image
 CONV_VARIANTS = ("early_fusion", "goal_encoder", "siamese")
 #: views of at least this many pixels make a conv-encoder policy heavy work (Policy.heavy): 128 x 128
@@ -177,7 +183,7 @@ class Policy(nn.Module):
         if variant not in VARIANTS:
             raise ValueError(f"unknown policy variant {variant!r}; choose one of {VARIANTS}")
         if fine_shifts and variant not in FINE_VARIANTS:
-            raise ValueError(f"fine_shifts={fine_shifts} needs variant 'correlation', 'direct' or 'robust', got {variant!r}")
+            raise ValueError(f"fine_shifts={fine_shifts} needs one of the variants {FINE_VARIANTS}, got {variant!r}")
         self.fine_shifts = int(fine_shifts)
         self.fine_scales = int(fine_scales) if self.fine_shifts else 1
         self.variant = variant
@@ -196,9 +202,10 @@ class Policy(nn.Module):
             self.encoder = ConvEncoder(3, height, width, hidden_size)
             self.fuse = nn.Sequential(nn.Linear(2 * hidden_size, hidden_size), nn.ReLU())
             feature_size = hidden_size
-        elif variant in ("direct", "robust"):
+        elif variant in ("direct", "robust", "phase"):
             self.encoder = DirectEncoder(
-                height, width, hidden_size, self.fine_shifts, self.fine_scales, normalized=variant == "robust"
+                height, width, hidden_size, self.fine_shifts, self.fine_scales,
+                normalized=variant in ("robust", "phase"), phase=variant == "phase",
             )
             feature_size = hidden_size
         else:  # correlation
