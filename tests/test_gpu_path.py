@@ -220,15 +220,16 @@ OPTIONS = {
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("name", list(OPTIONS))
-def test_speed_options_match_fp32(name, device):
+@pytest.mark.parametrize("variant", ["early_fusion", "phase"])
+def test_speed_options_match_fp32(name, device, variant):
     opts, tol = OPTIONS[name]
     if device == "cuda" and opts.get("compile"):
         opts = {**opts, "compile_backend": "inductor"}
     torch.manual_seed(0)
-    ref = Policy(SIZE, SIZE, "early_fusion", hidden_size=32).to(device)
+    ref = Policy(SIZE, SIZE, variant, hidden_size=32).to(device)
     with torch.no_grad():  # a critic and actor on the scale of a trained policy's
         ref.actor.weight.mul_(100.0)
-    fast = Policy(SIZE, SIZE, "early_fusion", hidden_size=32)
+    fast = Policy(SIZE, SIZE, variant, hidden_size=32)
     fast.load_state_dict(ref.state_dict())
     fast = fast.configure_speed(**opts).to(device)
     T, N = 3, 4

@@ -50,6 +50,47 @@ def test_peak_lies_at_the_translation_in_averaged_pixels(dy: int, dx: int) -> No
     assert float(scalars[0, 0]) > 2.0 * float(unrelated[0, 0])
 
 
+def test_identical_images_give_the_band_weights_alone() -> None:
+    # V conj(V) / |V conj(V)| = 1 at every frequency, so the surface is the inverse transform of the Gaussian band
+    # weights, the same for any image: phase correlation, not plain correlation (which would depend on the image)
+    pc = PhaseCorrelation(64, 64, cells=8, shifts=6)
+    h, w = pc.height, pc.width
+    expected = []
+    for sigma in PHASE_BANDWIDTHS:
+        fy = torch.fft.fftfreq(2 * h)[:, None]
+        fx = torch.fft.rfftfreq(2 * w)[None, :]
+        surface = torch.fft.irfft2(torch.exp(-(fy ** 2 + fx ** 2) / (2 * sigma ** 2)), s=(2 * h, 2 * w))
+        expected.append(float((surface[0, 0] - surface.mean()) / surface.std() / 10.0))
+    for seed in (3, 4):
+        image = texture(64, seed=seed)
+        _, scalars = pc(image, image.clone())
+        zero = scalars[0, K:2 * K]
+        torch.testing.assert_close(zero, torch.tensor(expected), atol=1e-3, rtol=1e-3)
+        torch.testing.assert_close(scalars[0, :K], zero)  # the peak is at zero shift
+        assert int(scalars[0, 4 * K:].argmax()) == 4  # centre of the 3 x 3 neighbourhood
+    assert expected[0] > expected[1] > 0  # the wide band is the sharper peak
+
+
+def test_non_square_views_and_the_centre_neighbourhood() -> None:
+    big = texture(160, seed=6)
+    pc = PhaseCorrelation(48, 64, cells=8, shifts=6)
+    assert (pc.pool, pc.height, pc.width) == (1, 48, 64)  # the short side is under 64: no averaging
+    # one cell up (6 rows of a 48-row view) and two cells right (16 columns): view[y - 6, x + 16] = target[y, x]
+    target = big[..., 50:98, 40:104]
+    view = big[..., 56:104, 24:88]
+    surfaces, scalars = pc(view, target)
+    assert peak_shift(scalars, pc) == (-6, 16)
+    row, col = divmod(int(surfaces[0, 0].flatten().argmax()), 13)
+    # the same bin as the coarse cost volume's minimum (8 x 8 thumbnails: cells of 6 x 8 pixels)
+    enc = DirectEncoder(48, 64, 16, fine_shifts=0)
+    thumb = lambda x: torch.nn.functional.adaptive_avg_pool2d(x, 8)  # noqa: E731
+    best = int(enc.global_costs(thumb(view), thumb(target)).argmin())
+    assert (row, col) == divmod(best, 13) == (5, 8)
+    # a shift of one row: the 3 x 3 neighbourhood of zero shift is highest at (+1, 0), entry 7
+    _, near = pc(big[..., 49:97, 40:104], target)  # view[y + 1, x] = target[y, x]
+    assert int(near[0, 4 * K:].argmax()) == 7
+
+
 def test_an_affine_change_of_the_intensities_changes_nothing() -> None:
     big = texture(160, seed=1)
     target, view = big[..., 40:104, 40:104], big[..., 44:108, 30:94]

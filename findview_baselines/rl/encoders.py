@@ -4,7 +4,8 @@ features that enter the GRU.
 - :class:`ConvEncoder`: three conv layers + one FC layer (Nature-DQN style); the ``early_fusion``,
   ``goal_encoder`` and ``siamese`` variants.
 - :class:`CorrelationEncoder`: a siamese CNN + a global correlation volume (the ``correlation`` variant).
-- :class:`DirectEncoder`: fixed photometric comparisons + a small learned head (``direct`` and ``robust``).
+- :class:`DirectEncoder`: fixed photometric comparisons + a small learned head (``direct``, ``robust`` and
+  ``phase``); :class:`PhaseCorrelation`: the ``phase`` variant's band-limited phase correlation.
 - The fixed photometric helpers they share: :func:`pyramid_costs` (local cost maps on an image pyramid),
   :func:`cost_features` (their three scalings), :func:`standardize` and :func:`highpass` (the ``robust``
   variant's normalisations), and the size constants of each encoder.
@@ -38,11 +39,11 @@ __all__ = [
     "standardize",
     "highpass",
     "STANDARDIZE_SCALE",
+    "STANDARDIZE_FLOOR",
     "PHASE_SIDE",
     "PHASE_BANDWIDTHS",
     "PHASE_SCALARS",
     "PhaseCorrelation",
-    "STANDARDIZE_FLOOR",
     "DirectEncoder",
 ]
 
@@ -344,10 +345,11 @@ def highpass(grey: torch.Tensor) -> torch.Tensor:
 STANDARDIZE_SCALE = 0.2
 STANDARDIZE_FLOOR = 0.02
 
-# the phase variant: views are first averaged to about PHASE_SIDE pixels a side (64x64 -> 32x32: a quarter of
-# the cost, nearly the same accuracy); Gaussian weights (sigma, cycles per pixel of those images) on the
+# the phase variant: views are first averaged over p x p blocks, p = min(H, W) // PHASE_SIDE (64x64 -> 32x32: a
+# quarter of the cost, nearly the same accuracy); Gaussian weights (sigma, cycles per pixel of those images) on the
 # normalised cross-power spectrum, one correlation surface each: 0.3 keeps most of the band (sharp peaks, survives
-# noise, fog, contrast, JPEG), 0.1 only the low frequencies (what the blurs leave)
+# noise, fog, contrast, JPEG), 0.1 only the low frequencies (some of what the blurs leave; fog and frost mislead
+# it). The widest band comes first: the 3 x 3 centre scalars are read from surface 0.
 PHASE_SIDE = 32
 PHASE_BANDWIDTHS = (0.3, 0.1)
 #: scalars of the phase variant: per bandwidth the peak and zero-shift heights and the peak's (dy, dx); the
@@ -361,19 +363,22 @@ class PhaseCorrelation(nn.Module):
     For grey images ``v``, ``t`` (B, 1, H, W), each averaged over ``p x p`` blocks (``p = min(H, W) //
     PHASE_SIDE``, at least 1) to ``h x w`` pixels: both are mean-removed, Hann-windowed and zero-padded to
     2h x 2w (so shifts do not wrap); the cross-power spectrum ``V conj(T)`` is normalised to unit magnitude
-    (only the phase is kept, so any affine change of the intensities leaves it alone), weighted by
-    ``exp(-|f|^2 / (2 sigma^2))`` for each ``sigma`` of :data:`PHASE_BANDWIDTHS` and transformed back. Entry
-    ``(dy, dx)`` of a surface is high where ``v[y + dy, x + dx] ~ t[y, x]``: content of the target found
-    ``dy`` rows down and ``dx`` columns right in the view (pixels of the ``h x w`` images). Each surface is
-    standardised over its shifts (z-scores, divided by 10): about 1.3-1.7 at a clear peak, 1.1-1.4 for unrelated
-    views (64x64, FoV 90).
+    (only the phase is kept, so a change of the intensities by a positive gain and an offset leaves it
+    alone), weighted by ``exp(-|f|^2 / (2 sigma^2))`` for each ``sigma`` of :data:`PHASE_BANDWIDTHS` and
+    transformed back. Entry ``(dy, dx)`` of a surface is high where ``v[y + dy, x + dx] ~ t[y, x]``: content of
+    the target found ``dy`` rows down and ``dx`` columns right in the view (pixels of the ``h x w`` images).
+    Each surface is standardised over its shifts (z-scores, divided by 10). On the wide band (0.3) identical images read
+    exactly 5.67 at zero shift whatever the image (the normalised spectrum is all ones: the clean stop); views
+    10-20 degrees apart (64x64, FoV 90) 1.8-3.5 at their peak, unrelated views about 0.6-1.2. The low band is
+    flatter (2.27 for identical images).
 
     Returns ``(surfaces, scalars)``:
     ``surfaces`` (B, len(bandwidths), 2s+1, 2s+1): the maximum over the shifts around each cell shift of the
     coarse cost volume (s = ``shifts`` cells of ``H / cells`` x ``W / cells`` pixels), so it lines up with
     :meth:`DirectEncoder.global_costs`;
-    ``scalars`` (B, :data:`PHASE_SCALARS`): per surface the peak height, the height at zero shift and the peak's
-    (dy / h, dx / w); then the sharpest surface around zero shift (3 x 3, dy-major): evidence for the stop.
+    ``scalars`` (B, :data:`PHASE_SCALARS`), by quantity then surface: ``[peak_k..., zero_k..., dy_k / h...,
+    dx_k / w...]`` (peak height, height at zero shift, the peak's shift as a fraction of the averaged image), then
+    surface 0 around zero shift, 3 x 3, dy-major (entry 4 is zero shift, 7 is (+1, 0)): evidence for the stop.
     Nothing here is learned; it is computed under ``torch.no_grad``.
     """
 
@@ -382,12 +387,13 @@ class PhaseCorrelation(nn.Module):
         self.pool = max(1, min(int(height), int(width)) // PHASE_SIDE)
         self.height, self.width = int(height) // self.pool, int(width) // self.pool
         self.cells, self.shifts = int(cells), int(shifts)
-        window = torch.hann_window(self.height, periodic=False)[:, None] * torch.hann_window(self.width, periodic=False)[None, :]
+        hann_y = torch.hann_window(self.height, periodic=False)
+        window = hann_y[:, None] * torch.hann_window(self.width, periodic=False)[None, :]
         self.register_buffer("window", window, persistent=False)
         fy = torch.fft.fftfreq(2 * self.height)[:, None]
         fx = torch.fft.rfftfreq(2 * self.width)[None, :]
         weights = torch.stack([torch.exp(-(fy ** 2 + fx ** 2) / (2 * sigma ** 2)) for sigma in PHASE_BANDWIDTHS])
-        self.register_buffer("weights", weights, persistent=False)  # (K, 2H, W + 1)
+        self.register_buffer("weights", weights, persistent=False)  # (K, 2h, w + 1)
 
     @torch.no_grad()
     def forward(self, grey_view: torch.Tensor, grey_target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -445,11 +451,12 @@ class DirectEncoder(nn.Module):
     instead of mapped to [-1, 1]). A clean target still gives exactly zero cost at the true shift.
 
     ``phase=True`` (the ``phase`` variant, normalised too) adds :class:`PhaseCorrelation`: two band-limited
-    phase-correlation surfaces of the grey images (averaged to 32 x 32), max-pooled onto the coarse volume's 13 x 13 shift bins as two
-    more channels of its conv head, and their peak, zero-shift and centre values as 17 more scalars. Phase
-    correlation ignores any affine change of the intensities and finds the shift by the structure of the whole
-    image; it survives the corruptions that defeat the photometric costs (fog, contrast, noise) and,
-    through the low band, some of the blur.
+    phase-correlation surfaces of the grey images (averaged over ``min(H, W) // 32`` blocks: 64x64 -> 32x32),
+    max-pooled onto the coarse volume's 13 x 13 shift bins as two more channels of its conv head, and their
+    peak, zero-shift and centre values as 17 more scalars. Phase correlation ignores a change of the
+    intensities by a positive gain and an offset and finds the shift by the structure of the whole image; its
+    wide band survives the corruptions that defeat the photometric costs (fog, contrast, noise), its low band
+    some of the blur.
 
     Nothing before the head is learned, so training touches only about 0.3M parameters and no image
     convolution: a CPU trains it an order of magnitude faster than the ``correlation`` variant. The global
