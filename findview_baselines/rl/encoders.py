@@ -394,6 +394,10 @@ class PhaseCorrelation(nn.Module):
         fx = torch.fft.rfftfreq(2 * self.width)[None, :]
         weights = torch.stack([torch.exp(-(fy ** 2 + fx ** 2) / (2 * sigma ** 2)) for sigma in PHASE_BANDWIDTHS])
         self.register_buffer("weights", weights, persistent=False)  # (K, 2h, w + 1)
+        # the shifts of the coarse volume's bins: +-(s + 1/2) cells around zero, max-pooled to 2s + 1 bins a side
+        self.bins = 2 * self.shifts + 1
+        self.reach_y = min(self.height - 1, int(round((self.shifts + 0.5) * self.height / self.cells)))
+        self.reach_x = min(self.width - 1, int(round((self.shifts + 0.5) * self.width / self.cells)))
 
     @torch.no_grad()
     def forward(self, grey_view: torch.Tensor, grey_target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -401,23 +405,20 @@ class PhaseCorrelation(nn.Module):
         b = grey_view.shape[0]
 
         def spectrum(grey: torch.Tensor) -> torch.Tensor:
-            g = nn.functional.avg_pool2d(grey.float(), self.pool)[:, 0, :h, :w] if self.pool > 1 else grey[:, 0].float()
+            g = grey.float()
+            g = nn.functional.avg_pool2d(g, self.pool)[:, 0, :h, :w] if self.pool > 1 else g[:, 0]
             g = (g - g.mean(dim=(1, 2), keepdim=True)) * self.window
             return torch.fft.rfft2(g, s=(2 * h, 2 * w))
 
         cross = spectrum(grey_view) * spectrum(grey_target).conj()
         cross = cross / cross.abs().clamp_min(1e-9)
-        corr = torch.fft.irfft2(cross[:, None] * self.weights, s=(2 * h, 2 * w))  # (B, K, 2H, 2W), shift 0 at [0, 0]
+        corr = torch.fft.irfft2(cross[:, None] * self.weights, s=(2 * h, 2 * w))  # (B, K, 2h, 2w), shift 0 at [0, 0]
         corr = torch.fft.fftshift(corr, dim=(-2, -1))  # shift 0 at [h, w]
         flat = corr.flatten(2)
         z = (corr - flat.mean(dim=2)[..., None, None]) / flat.std(dim=2).clamp_min(1e-9)[..., None, None] / 10.0
-        # the shifts of the coarse volume's bins: +-(s + 1/2) cells around zero, max-pooled to 2s + 1 bins a side
-        n = 2 * self.shifts + 1
-        ry = min(h - 1, int(round((self.shifts + 0.5) * h / self.cells)))
-        rx = min(w - 1, int(round((self.shifts + 0.5) * w / self.cells)))
-        surfaces = nn.functional.adaptive_max_pool2d(z[..., h - ry:h + ry + 1, w - rx:w + rx + 1], n)
-        zflat = z.flatten(2)
-        peak, where = zflat.max(dim=2)
+        ry, rx = self.reach_y, self.reach_x
+        surfaces = nn.functional.adaptive_max_pool2d(z[..., h - ry:h + ry + 1, w - rx:w + rx + 1], self.bins)
+        peak, where = z.flatten(2).max(dim=2)
         peak_y = (where // (2 * w) - h).float() / h
         peak_x = (where % (2 * w) - w).float() / w
         zero = z[..., h, w]
