@@ -467,3 +467,44 @@ def test_dagger_learns_a_trivial_world(panoramas, seed) -> None:
     print(f"\nDAgger seed {seed}: teacher-forced agreement {before:.3f} -> {after:.3f}, false stops {false_stops:.4f}")
     assert after >= 0.8
     assert false_stops <= 0.02
+
+
+def fixed_cache_run(images, cache: bool, updates: int = 3) -> DAggerTrainer:
+    """A small DAgger run of the ``phase`` policy (fixed encoder part: cost volumes and phase correlation)."""
+    torch.manual_seed(0)
+    env = sampled_env(images, 3, 32, 30, 120, seed=12)
+    policy = Policy(32, 32, variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2)
+    cfg = DAggerConfig(
+        rollout_steps=8, seq_len=4, buffer_size=96, batch_sequences=3, epochs=2.0, beta_decay_updates=3,
+        labels="set", search_prior="pan", cache_fixed_features=cache,
+    )
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=6)
+    trainer.start()
+    for _ in range(updates):
+        trainer.train_update()
+    return trainer
+
+
+def test_cached_fixed_features_train_the_same_weights(panoramas) -> None:
+    """Computing the parameter-free encoder part once per buffered step (cache_fixed_features) is the same
+    training as recomputing it at every gradient step: the same weights after 3 updates (to float rounding),
+    and the cached rows are what the policy computes from the stored images."""
+    cached = fixed_cache_run(panoramas, cache=True)
+    plain = fixed_cache_run(panoramas, cache=False)
+    assert plain.buffer.fixed is None and cached.buffer.fixed is not None
+    n = len(cached.buffer)
+    assert n == 3 * 2 * 3  # 3 updates x 2 chunks x 3 envs
+    for (name, a), b in zip(cached.policy.state_dict().items(), plain.policy.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), name
+    fresh = cached.policy.fixed_features(
+        {"view": cached.buffer.view[:n].flatten(0, 1), "target": cached.buffer.target[:n].flatten(0, 1)}
+    )
+    assert torch.allclose(cached.buffer.fixed[:n].flatten(0, 1), fresh, atol=1e-6)
+    # a resumed run (save_buffer) rebuilds the cache from the saved images
+    state = cached.state_dict()
+    assert "fixed" not in state["buffer"]
+    env = sampled_env(panoramas, 3, 32, 30, 120, seed=12)
+    policy = Policy(32, 32, variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2)
+    resumed = DAggerTrainer(env, policy, cached.cfg, total_updates=6)
+    resumed.load_state_dict(state)
+    assert torch.allclose(resumed.buffer.fixed[:n], cached.buffer.fixed[:n], atol=1e-6)

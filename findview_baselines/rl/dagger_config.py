@@ -65,6 +65,10 @@ class DAggerConfig:
     """Weight of the auxiliary rotation / overlap loss (0 = off)."""
     save_buffer: bool = True
     """Store the buffer in ``state_dict`` (exact resume, large checkpoints); false: a resume refills it."""
+    cache_fixed_features: bool = True
+    """Policies whose encoder begins with parameter-free comparisons (``direct``, ``robust``, ``phase``):
+    compute that part once per buffered step, when it enters the buffer, instead of at every gradient step
+    (the same loss; 2x faster updates for ``phase`` on a CPU; 5 KB per buffered step). Ignored by the others."""
 
     def __post_init__(self) -> None:
         positive = ("lr", "rollout_steps", "seq_len", "buffer_size", "batch_sequences", "epochs")

@@ -505,8 +505,10 @@ class DirectEncoder(nn.Module):
         self.head_fc = nn.Sequential(nn.Linear(head_out, out_size), nn.LayerNorm(out_size), nn.ReLU())
         fine_size = 3 * self.fine_scales * (2 * self.fine_shifts + 1) ** 2 if self.fine_shifts else 0
         context_size = 2 * 3 * DIRECT_CONTEXT * DIRECT_CONTEXT
+        self.volume_channels = 3 + phase_channels
+        self.fixed_scalars = 3 + fine_size + context_size + 2 + (PHASE_SCALARS if phase else 0)
         self.fuse = nn.Sequential(
-            nn.Linear(out_size + 3 + fine_size + context_size + 2 + (PHASE_SCALARS if phase else 0), out_size),
+            nn.Linear(out_size + self.fixed_scalars, out_size),
             nn.LayerNorm(out_size), nn.ReLU(),
             nn.Linear(out_size, out_size), nn.LayerNorm(out_size), nn.ReLU(),
         )
@@ -523,8 +525,17 @@ class DirectEncoder(nn.Module):
         diff = (windows - thumb_target.flatten(1)[:, :, None]).abs() * mask
         return diff.sum(dim=1) / self.overlap_count
 
-    def forward(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """``view``, ``target`` (B, 3, H, W) float in [0, 1] -> (B, out_size)."""
+    @property
+    def fixed_size(self) -> int:
+        """Width of :meth:`fixed_inputs`: the coarse volume's channels x (2s+1)^2 bins, then the fixed scalars."""
+        return self.volume_channels * self.volume_size**2 + self.fixed_scalars
+
+    def fixed_inputs(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Everything before the learned head: ``view``, ``target`` (B, 3, H, W) float in [0, 1] ->
+        (B, :attr:`fixed_size`): the coarse volume (B, C, 2s+1, 2s+1) flattened, then the fixed scalars (soft
+        argmin, lowest cost, fine pyramid features, colour thumbnails, exact-match cue, phase scalars) in the
+        order the head's ``fuse`` layer reads them. No parameters: a trainer may compute it once per
+        observation and reuse it for every gradient step (:meth:`head_forward`)."""
         b, n = view.shape[0], self.volume_size
         if self.normalized:
             view, target = standardize(view), standardize(target)
@@ -543,9 +554,8 @@ class DirectEncoder(nn.Module):
         if self.phase is not None:
             surfaces, phase_scalars = self.phase(grey_v, grey_t)
             volume = torch.cat([volume, surfaces.to(volume.dtype)], dim=1)
-        coarse = self.head_fc(self.head(volume).flatten(1))
         weights = torch.softmax(-shape * DIRECT_SOFTMIN_TEMPERATURE, dim=1)
-        parts = [coarse, weights @ self.shift_coords, low * 4.0]
+        parts = [volume.flatten(1), weights @ self.shift_coords, low * 4.0]
         if self.fine_shifts:
             fine = pyramid_costs(fine_v, fine_t, self.fine_shifts, self.fine_scales)
             parts.append(cost_features(fine, self.fine_scales))
@@ -558,4 +568,17 @@ class DirectEncoder(nn.Module):
         parts += [torch.exp(-1000.0 * residual), residual * 4.0]
         if phase_scalars is not None:
             parts.append(phase_scalars.to(residual.dtype))
-        return self.fuse(torch.cat(parts, dim=1))
+        return torch.cat(parts, dim=1)
+
+    def head_forward(self, fixed: torch.Tensor) -> torch.Tensor:
+        """The learned part: :meth:`fixed_inputs` (B, :attr:`fixed_size`) -> (B, out_size)."""
+        n, split = self.volume_size, self.volume_channels * self.volume_size**2
+        if fixed.shape[-1] != self.fixed_size:
+            raise ValueError(f"fixed inputs of width {fixed.shape[-1]}, this encoder reads {self.fixed_size}")
+        volume = fixed[:, :split].view(-1, self.volume_channels, n, n)
+        coarse = self.head_fc(self.head(volume).flatten(1))
+        return self.fuse(torch.cat([coarse, fixed[:, split:]], dim=1))
+
+    def forward(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``view``, ``target`` (B, 3, H, W) float in [0, 1] -> (B, out_size)."""
+        return self.head_forward(self.fixed_inputs(view, target))

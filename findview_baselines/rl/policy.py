@@ -257,6 +257,22 @@ class Policy(nn.Module):
                 return encode(obs, distinct_targets).float()
         return encode(obs, distinct_targets)
 
+    @property
+    def fixed_feature_size(self) -> int:
+        """Width of :meth:`fixed_features` for the variants whose encoder begins with fixed, parameter-free
+        comparisons (``direct``, ``robust``, ``phase``: :meth:`DirectEncoder.fixed_inputs`); 0 for the others."""
+        return self.encoder.fixed_size if isinstance(self.encoder, DirectEncoder) else 0
+
+    def fixed_features(self, obs: Obs) -> torch.Tensor:
+        """The encoder's parameter-free part: ``obs`` {"view", "target"} (B, 3, H, W) uint8 -> (B,
+        :attr:`fixed_feature_size`) float32. It does not change while the weights train, so a trainer that
+        reuses an observation for several gradient steps computes it once (``forward_features(fixed=...)``)."""
+        if not self.fixed_feature_size:
+            raise ValueError(f"the {self.variant!r} variant has no fixed encoder part (fixed_feature_size is 0)")
+        self._check_size(obs["view"])
+        with torch.no_grad():
+            return self.encoder.fixed_inputs(self._prepare(obs["view"]), self._prepare(obs["target"])).float()
+
     def _init_weights(self) -> None:
         """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
         for module in self.modules():
@@ -304,10 +320,7 @@ class Policy(nn.Module):
         once per distinct target (``rl/distinct.py``; worth it on a rollout of several steps, where each
         episode's target repeats; it costs a host read on CUDA, so acting one step does not ask for it).
         """
-        if obs["view"].shape[-2:] != (self.height, self.width):
-            raise ValueError(
-                f"policy was built for {self.height}x{self.width} images, got {tuple(obs['view'].shape[-2:])}"
-            )
+        self._check_size(obs["view"])
         view = self._prepare(obs["view"])
         if self.variant not in CONV_VARIANTS:  # the FINE_VARIANTS take both images together
             return self.encoder(view, self._prepare(obs["target"]))
@@ -326,6 +339,12 @@ class Policy(nn.Module):
         both = self.encoder(torch.cat([view, target], dim=0))
         view_feat, target_feat = both[: view.shape[0]], both[view.shape[0]:]
         return self.fuse(torch.cat([view_feat, regroup(target_feat, inverse)], dim=1))
+
+    def _check_size(self, images: torch.Tensor) -> None:
+        if images.shape[-2:] != (self.height, self.width):
+            raise ValueError(
+                f"policy was built for {self.height}x{self.width} images, got {tuple(images.shape[-2:])}"
+            )
 
     def _prepare(self, images: torch.Tensor) -> torch.Tensor:
         """Encoder input: float in [0, 1] (uint8 is scaled), in channels-last memory format when that is on."""
@@ -378,13 +397,24 @@ class Policy(nn.Module):
         return dist, values, new_hidden
 
     def forward_features(
-        self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor
+        self, obs: Obs | None, hidden: torch.Tensor, masks: torch.Tensor, fixed: torch.Tensor | None = None
     ) -> tuple[Categorical, torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`forward` plus the pre-GRU features (T*N, F) (input of an :class:`AuxHead`).
 
         Same inputs as :meth:`run_gru` (time-major ``T*N`` rows, ``hidden`` (N, hidden), masks (T*N,)).
+        ``fixed``: the rows' :meth:`fixed_features` (T*N, D), computed earlier, instead of ``obs`` (the same
+        result; the encoder's parameter-free part is skipped; ``agent.compile`` is not applied to the rest).
         """
-        features = self.features(obs, distinct_targets=obs["view"].shape[0] > hidden.shape[0])  # several steps
+        if fixed is not None:
+            if self.precision == "bf16":
+                with torch.autocast(device_type=fixed.device.type, dtype=torch.bfloat16):
+                    features = self.encoder.head_forward(fixed).float()
+            else:
+                features = self.encoder.head_forward(fixed)
+        elif obs is None:
+            raise ValueError("forward_features needs obs or fixed")
+        else:
+            features = self.features(obs, distinct_targets=obs["view"].shape[0] > hidden.shape[0])  # several steps
         out, new_hidden = self.run_gru(features, hidden, masks)
         dist = Categorical(logits=self.actor(out))
         values = self.critic(out).squeeze(-1)

@@ -4,7 +4,7 @@ trainer samples mini-batches of chunks from and stores in its checkpoints."""
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 
@@ -19,7 +19,9 @@ class SequenceBuffer:
 
     Per chunk: view, target (L, 3, H, W) uint8; hidden0 (hidden,) the GRU state entering its first step;
     masks (L,) (0 where an episode starts); labels (L, 5) bool (the accepted actions); aux (L, 3) float
-    (when ``with_aux``).
+    (when ``with_aux``); fixed (L, fixed_size) float, the policy's parameter-free encoder output for each
+    step (when ``fixed_size > 0``: computed once when the chunk arrives instead of at every gradient step;
+    not saved by :meth:`state_dict`, :meth:`recompute_fixed` rebuilds it from the images).
     """
 
     def __init__(
@@ -31,6 +33,7 @@ class SequenceBuffer:
         hidden_size: int,
         device: torch.device | str = "cpu",
         with_aux: bool = False,
+        fixed_size: int = 0,
     ) -> None:
         self.capacity, self.seq_len = int(capacity), int(seq_len)
         self.device = torch.device(device)
@@ -42,6 +45,7 @@ class SequenceBuffer:
         self.labels = torch.empty(c, L, NUM_ACTIONS, dtype=torch.bool, **kw)
         self.weights = torch.ones(c, L, **kw)
         self.aux = torch.empty(c, L, AUX_SIZE, **kw) if with_aux else None
+        self.fixed = torch.empty(c, L, int(fixed_size), **kw) if fixed_size > 0 else None
         self.pos = 0  # next slot to write
         self.size = 0  # filled slots
 
@@ -57,10 +61,11 @@ class SequenceBuffer:
         labels: torch.Tensor,
         aux: torch.Tensor | None = None,
         weights: torch.Tensor | None = None,
+        fixed: torch.Tensor | None = None,
     ) -> None:
         """Append ``n`` chunks given time-major: view / target (L, n, 3, H, W), hidden0 (n, hidden), masks
-        (L, n), labels (L, n, 5) bool, aux (L, n, 3), weights (L, n) loss weights (default 1). The oldest
-        chunks are overwritten when full."""
+        (L, n), labels (L, n, 5) bool, aux (L, n, 3), weights (L, n) loss weights (default 1), fixed (L, n,
+        fixed_size) (required when the buffer stores it). The oldest chunks are overwritten when full."""
         n = hidden0.shape[0]
         if n > self.capacity:  # keep the newest
             keep = slice(n - self.capacity, n)
@@ -68,6 +73,7 @@ class SequenceBuffer:
             hidden0 = hidden0[keep]
             aux = None if aux is None else aux[:, keep]
             weights = None if weights is None else weights[:, keep]
+            fixed = None if fixed is None else fixed[:, keep]
             n = self.capacity
         slots = (torch.arange(n) + self.pos) % self.capacity
         slots = slots.to(self.device)
@@ -81,6 +87,10 @@ class SequenceBuffer:
             if aux is None:
                 raise ValueError("this buffer stores aux targets; add() needs aux")
             self.aux[slots] = aux.transpose(0, 1).to(self.device, torch.float32)
+        if self.fixed is not None:
+            if fixed is None:
+                raise ValueError("this buffer stores the fixed encoder inputs; add() needs fixed")
+            self.fixed[slots] = fixed.transpose(0, 1).to(self.device, torch.float32)
         self.pos = (self.pos + n) % self.capacity
         self.size = min(self.capacity, self.size + n)
 
@@ -92,7 +102,8 @@ class SequenceBuffer:
 
     def batch(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """The chunks ``index`` (b,), time-major flattened like a rollout: obs (L*b, 3, H, W), masks (L*b,),
-        labels (L*b, 5), weights (L*b,), aux (L*b, 3) or absent, hidden0 (b, hidden)."""
+        labels (L*b, 5), weights (L*b,), aux (L*b, 3) or absent, fixed (L*b, fixed_size) or absent, hidden0
+        (b, hidden)."""
 
         def tm(x: torch.Tensor) -> torch.Tensor:
             return x[index].transpose(0, 1).flatten(0, 1)
@@ -107,7 +118,21 @@ class SequenceBuffer:
         }
         if self.aux is not None:
             out["aux"] = tm(self.aux)
+        if self.fixed is not None:
+            out["fixed"] = tm(self.fixed)
         return out
+
+    def recompute_fixed(self, fixed_of: Callable[[dict[str, torch.Tensor]], torch.Tensor], chunks: int = 32) -> None:
+        """Fill ``fixed`` of every stored chunk from its images: ``fixed_of({"view", "target"})`` maps (B, 3,
+        H, W) uint8 to (B, fixed_size) (``Policy.fixed_features``), run ``chunks`` chunks at a time."""
+        if self.fixed is None:
+            return
+        L = self.seq_len
+        for start in range(0, self.size, chunks):
+            idx = slice(start, min(self.size, start + chunks))
+            k = idx.stop - idx.start
+            obs = {"view": self.view[idx].flatten(0, 1), "target": self.target[idx].flatten(0, 1)}
+            self.fixed[idx] = fixed_of(obs).view(k, L, -1)
 
     def state_dict(self) -> dict[str, Any]:
         """The filled part (CPU tensors) and the write position."""

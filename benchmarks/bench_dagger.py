@@ -1,0 +1,94 @@
+"""DAgger update time of the robust preset, with and without the cache of the fixed encoder inputs.
+
+    python benchmarks/bench_dagger.py                      # 64x64 phase policy, 16 envs, 4 timed updates each
+    python benchmarks/bench_dagger.py --variant robust --updates 8 --threads 2
+
+The ``direct`` / ``robust`` / ``phase`` policies begin with parameter-free comparisons of view and target (cost
+volumes, phase correlation). ``trainer.dagger.cache_fixed_features=true`` (the default) computes them once
+when a step enters the buffer; ``false`` recomputes them at every gradient step (``epochs`` = 8 in the robust
+preset: each buffered step is forwarded about 8 times). Both settings build the same trainer as
+``+experiment=robust`` (16 envs, 32-step rollouts, 16 sequences of 16 steps per gradient step, all three
+difficulties, every corruption at severity 1-5), run one warm-up update, then ``--updates`` timed ones;
+the two settings alternate (``--rounds``) so a change in machine load hits both. Prints seconds per update
+(rollout and gradient steps) and the ratio. Panoramas: ``$FINDVIEW_SUN360_MINI`` when set, else procedural.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import findview  # noqa: F401  (thread policy before torch loads)
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_train import find_panoramas  # noqa: E402
+
+from findview.build import build_sampled_env  # noqa: E402
+from findview.config import CorruptionConfig, SimConfig, TaskConfig  # noqa: E402
+from findview.dataset import EpisodeSampler  # noqa: E402
+from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer  # noqa: E402
+from findview_baselines.rl.policy import Policy  # noqa: E402
+
+SIZE = 64
+
+
+def make_trainer(images, variant: str, cache: bool, seed: int = 0) -> DAggerTrainer:
+    """The robust preset's trainer (configs/experiment/robust.yaml) on sampled episodes of every difficulty."""
+    torch.manual_seed(seed)
+    sim_cfg = SimConfig(fov=90, height=SIZE, width=SIZE, device="cpu")
+    sampler = EpisodeSampler(images, 90, seed=seed, max_steps=500)
+    corruption = CorruptionConfig(name="all", severity=[1, 5], clean_fraction=0.2)
+    env = build_sampled_env(sim_cfg, TaskConfig(max_steps=500), sampler, 16, corruption_cfg=corruption)
+    env.source.level = 3
+    policy = Policy(SIZE, SIZE, variant, hidden_size=128, fine_shifts=2, fine_scales=4)
+    cfg = DAggerConfig(
+        rollout_steps=32, epochs=8, linear_decay=True, beta_decay_updates=450, beta_end=0.3, stop_weight=2.0,
+        search_weight=0.3, labels="set", order="larger_first", search_prior="pan", save_buffer=False,
+        cache_fixed_features=cache,
+    )
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=700, seed=seed, revisit_penalty=16.0)
+    trainer.start()
+    return trainer
+
+
+def time_updates(trainer: DAggerTrainer, updates: int) -> tuple[float, float]:
+    """Seconds per update: (whole update, gradient steps alone)."""
+    trainer.train_update()  # warm-up: panorama decoding, allocator
+    trainer.pop_timings()
+    start = time.perf_counter()
+    for _ in range(updates):
+        trainer.train_update()
+    wall = time.perf_counter() - start
+    return wall / updates, trainer.pop_timings()["update"] / updates
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--variant", default="phase", choices=("direct", "robust", "phase"))
+    parser.add_argument("--updates", type=int, default=4, help="timed updates per setting and round")
+    parser.add_argument("--rounds", type=int, default=2, help="alternations of the two settings")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        images = find_panoramas(Path(tmp))
+        times: dict[bool, list[tuple[float, float]]] = {True: [], False: []}
+        for _ in range(args.rounds):
+            for cache in (False, True):
+                times[cache].append(time_updates(make_trainer(images, args.variant, cache), args.updates))
+    print(f"\nDAgger update of the robust preset ({args.variant}, {SIZE}x{SIZE}, 16 envs, epochs 8), "
+          f"{args.threads} thread(s), {args.rounds} x {args.updates} updates per setting")
+    print(f"{'fixed inputs':>22} | {'s / update':>10} | {'gradient steps':>14}")
+    mean = {c: [sum(x[i] for x in times[c]) / len(times[c]) for i in (0, 1)] for c in times}
+    for cache, label in ((False, "recomputed every step"), (True, "cached (default)")):
+        print(f"{label:>22} | {mean[cache][0]:>10.2f} | {mean[cache][1]:>14.2f}")
+    print(f"ratio recomputed / cached: update {mean[False][0] / mean[True][0]:.2f}x, "
+          f"gradient steps {mean[False][1] / mean[True][1]:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
