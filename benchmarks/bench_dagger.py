@@ -44,7 +44,7 @@ def make_trainer(images, variant: str, cache: bool, seed: int = 0) -> DAggerTrai
     corruption = CorruptionConfig(name="all", severity=[1, 5], clean_fraction=0.2)
     env = build_sampled_env(sim_cfg, TaskConfig(max_steps=500), sampler, 16, corruption_cfg=corruption)
     env.source.level = 3
-    policy = Policy(SIZE, SIZE, variant, hidden_size=128, fine_shifts=2, fine_scales=4)
+    policy = Policy(SIZE, SIZE, variant, hidden_size=256, fine_shifts=2, fine_scales=4)
     cfg = DAggerConfig(
         rollout_steps=32, epochs=8, linear_decay=True, beta_decay_updates=450, beta_end=0.3, stop_weight=2.0,
         search_weight=0.3, labels="set", order="larger_first", search_prior="pan", save_buffer=False,
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> None:
         for _ in range(args.rounds):
             for cache in (False, True):
                 times[cache].append(time_updates(make_trainer(images, args.variant, cache), args.updates))
-    print(f"\nDAgger update of the robust preset ({args.variant}, {SIZE}x{SIZE}, 16 envs, epochs 8), "
+    print(f"\nDAgger update of the robust preset ({args.variant}, {SIZE}x{SIZE}, GRU 256, 16 envs, epochs 8), "
           f"{args.threads} thread(s), {args.rounds} x {args.updates} updates per setting")
     print(f"{'fixed inputs':>22} | {'s / update':>10} | {'gradient steps':>14}")
     mean = {c: [sum(x[i] for x in times[c]) / len(times[c]) for i in (0, 1)] for c in times}

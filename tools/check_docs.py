@@ -144,6 +144,7 @@ OVERRIDES: dict[str, str] = {
     "tools/eval.py": EVAL,
     "benchmarks/bench_sim.py": "--iters 1 --env-steps 5 --batch 2",
     "benchmarks/bench_train.py": "--updates 1 --rollout-steps 2 --num-envs 2",
+    "benchmarks/bench_dagger.py": "--updates 1 --rounds 1",
     "benchmarks/bench_scale.py": "--quick",
     "benchmarks/bench_lr_scaling.py": "--quick",
     "benchmarks/bench_load.py": "--rounds 1 --env-steps 2 --decisions 2 --ppo-size 64 --ppo-envs 2 --ppo-steps 2",

@@ -47,7 +47,7 @@ bytes of uint8 images (about 400 MB for 16384 steps of 64x64 views) in memory an
 Fixed encoder inputs (``cache_fixed_features``, on by default): the ``direct`` / ``robust`` / ``phase`` policies
 begin with parameter-free comparisons of view and target (``Policy.fixed_features``). The learner computes them
 once per step to act in the rollout, the buffer keeps them (about 5 KB per step for ``phase``) and every gradient
-step starts from them, instead of recomputing them about ``epochs`` times per step: the same loss, and 2.9x
+step starts from them, instead of recomputing them about ``epochs`` times per step: the same loss, and 3.4x
 faster updates of the robust preset on one CPU thread (``benchmarks/bench_dagger.py``). A resumed buffer
 rebuilds them from its images.
 
