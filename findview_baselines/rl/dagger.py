@@ -230,12 +230,7 @@ class DAggerTrainer(Trainer):
             obs = {"view": self.view, "target": self.target}
             if fixed is not None:
                 fixed[t] = self.policy.fixed_features(obs)
-            if self.revisits is None and fixed is None:
-                learner, _, _, new_hidden = self.policy.act(
-                    obs, self.hidden, self.masks, deterministic=not cfg.sample_actions
-                )
-            else:
-                learner, new_hidden = self._act_with_revisits(obs, None if fixed is None else fixed[t])
+            learner, new_hidden = self._learner_step(obs, None if fixed is None else fixed[t])
             t1 = time.perf_counter()
             use_oracle = torch.rand(n, generator=self.mix_generator) < beta
             executed_oracle += int(use_oracle.sum())
@@ -264,11 +259,11 @@ class DAggerTrainer(Trainer):
         stats = {"oracle_share": executed_oracle / (T * n), "rollout_agreement": float(agree) / (T * n)}
         return records, stats
 
-    def _act_with_revisits(
+    def _learner_step(
         self, obs: Mapping[str, torch.Tensor], fixed: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The learner's actions under its search memory (as ``PPOAgent`` acts at evaluation; without one when
-        ``revisit_penalty`` is 0) and new GRU state; ``fixed``: the observation's fixed encoder inputs."""
+        """The learner's actions, under its search memory when it has one (as ``PPOAgent`` acts at evaluation),
+        and its new GRU state; ``fixed``: the observation's fixed encoder inputs, when cached."""
         dist, _, new_hidden, _ = self.policy.forward_features(obs, self.hidden, self.masks, fixed=fixed)
         logits = dist.logits
         if self.revisits is not None:

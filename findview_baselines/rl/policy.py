@@ -249,13 +249,25 @@ class Policy(nn.Module):
         self._compiled_encode = torch.compile(self.encode, backend=compile_backend) if compile else None
         return self
 
-    def features(self, obs: Obs, distinct_targets: bool = False) -> torch.Tensor:
-        """:meth:`encode` under the speed options: (B, F) float32 features entering the GRU."""
-        encode = self._compiled_encode if self._compiled_encode is not None else self.encode
+    def features(self, obs: Obs | None, distinct_targets: bool = False, fixed: torch.Tensor | None = None) -> torch.Tensor:
+        """:meth:`encode` under the speed options: (B, F) float32 features entering the GRU. ``fixed``: the rows'
+        :meth:`fixed_features`, computed earlier, instead of ``obs`` (only the encoder's learned head runs;
+        ``agent.compile`` is not applied to it)."""
+        if fixed is not None:
+            def run() -> torch.Tensor:
+                return self.encoder.head_forward(fixed)
+            device = fixed.device
+        elif obs is None:
+            raise ValueError("features needs obs or fixed")
+        else:
+            encode = self._compiled_encode if self._compiled_encode is not None else self.encode
+            def run() -> torch.Tensor:
+                return encode(obs, distinct_targets)
+            device = obs["view"].device
         if self.precision == "bf16":
-            with torch.autocast(device_type=obs["view"].device.type, dtype=torch.bfloat16):
-                return encode(obs, distinct_targets).float()
-        return encode(obs, distinct_targets)
+            with torch.autocast(device_type=device.type, dtype=torch.bfloat16):
+                return run().float()
+        return run()
 
     @property
     def fixed_feature_size(self) -> int:
@@ -405,16 +417,8 @@ class Policy(nn.Module):
         ``fixed``: the rows' :meth:`fixed_features` (T*N, D), computed earlier, instead of ``obs`` (the same
         result; the encoder's parameter-free part is skipped; ``agent.compile`` is not applied to the rest).
         """
-        if fixed is not None:
-            if self.precision == "bf16":
-                with torch.autocast(device_type=fixed.device.type, dtype=torch.bfloat16):
-                    features = self.encoder.head_forward(fixed).float()
-            else:
-                features = self.encoder.head_forward(fixed)
-        elif obs is None:
-            raise ValueError("forward_features needs obs or fixed")
-        else:
-            features = self.features(obs, distinct_targets=obs["view"].shape[0] > hidden.shape[0])  # several steps
+        several_steps = obs is not None and obs["view"].shape[0] > hidden.shape[0]
+        features = self.features(obs, distinct_targets=several_steps, fixed=fixed)
         out, new_hidden = self.run_gru(features, hidden, masks)
         dist = Categorical(logits=self.actor(out))
         values = self.critic(out).squeeze(-1)
