@@ -5,9 +5,9 @@
 
 The ``direct`` / ``robust`` / ``phase`` policies begin with parameter-free comparisons of view and target (cost
 volumes, phase correlation). ``trainer.dagger.cache_fixed_features=true`` (the default) computes them once
-when a step enters the buffer; ``false`` recomputes them at every gradient step (``epochs`` = 8 in the robust
-preset: each buffered step is forwarded about 8 times). Both settings build the same trainer as
-``+experiment=robust`` (16 envs, 32-step rollouts, 16 sequences of 16 steps per gradient step, all three
+per step, when the learner acts in the rollout, and the buffer keeps them; ``false`` recomputes them at every gradient step (``epochs`` = 8 in the robust
+preset: each buffered step is forwarded about 8 times). Both settings build the trainer of
+``+experiment=robust``, composed as ``tools/train.py`` does (64x64 views, GRU 256, 16 envs, 32-step rollouts, 16 sequences of 16 steps per gradient step, all three
 difficulties, every corruption at severity 1-5), run one warm-up update, then ``--updates`` timed ones;
 the two settings alternate (``--rounds``) so a change in machine load hits both. Prints seconds per update
 (rollout and gradient steps) and the ratio. Panoramas: ``$FINDVIEW_SUN360_MINI`` when set, else procedural.
@@ -28,29 +28,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train import find_panoramas  # noqa: E402
 
 from findview.build import build_sampled_env  # noqa: E402
-from findview.config import CorruptionConfig, SimConfig, TaskConfig  # noqa: E402
 from findview.dataset import EpisodeSampler  # noqa: E402
-from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer  # noqa: E402
-from findview_baselines.rl.policy import Policy  # noqa: E402
-
-SIZE = 64
+from findview_baselines.config import compose_config, typed_config  # noqa: E402
+from findview_baselines.rl.dagger import DAggerTrainer  # noqa: E402
+from findview_baselines.rl.policy import build_policy  # noqa: E402
 
 
 def make_trainer(images, variant: str, cache: bool, seed: int = 0) -> DAggerTrainer:
-    """The robust preset's trainer (configs/experiment/robust.yaml) on sampled episodes of every difficulty."""
+    """The robust preset's trainer (configs/experiment/robust.yaml, composed as tools/train.py does) on sampled
+    episodes of every difficulty."""
     torch.manual_seed(seed)
-    sim_cfg = SimConfig(fov=90, height=SIZE, width=SIZE, device="cpu")
-    sampler = EpisodeSampler(images, 90, seed=seed, max_steps=500)
-    corruption = CorruptionConfig(name="all", severity=[1, 5], clean_fraction=0.2)
-    env = build_sampled_env(sim_cfg, TaskConfig(max_steps=500), sampler, 16, corruption_cfg=corruption)
+    cfg = typed_config(compose_config("train", [
+        "+experiment=robust", f"agent.variant={variant}", f"trainer.dagger.cache_fixed_features={cache}",
+    ]))
+    sampler = EpisodeSampler(images, cfg.sim.fov, seed=seed, max_steps=cfg.task.max_steps)
+    env = build_sampled_env(cfg.sim, cfg.task, sampler, cfg.trainer.num_envs, corruption_cfg=cfg.corruption)
     env.source.level = 3
-    policy = Policy(SIZE, SIZE, variant, hidden_size=256, fine_shifts=2, fine_scales=4)
-    cfg = DAggerConfig(
-        rollout_steps=32, epochs=8, linear_decay=True, beta_decay_updates=450, beta_end=0.3, stop_weight=2.0,
-        search_weight=0.3, labels="set", order="larger_first", search_prior="pan", save_buffer=False,
-        cache_fixed_features=cache,
-    )
-    trainer = DAggerTrainer(env, policy, cfg, total_updates=700, seed=seed, revisit_penalty=16.0)
+    policy = build_policy(cfg.agent, cfg.sim.height, cfg.sim.width)
+    trainer = DAggerTrainer(env, policy, cfg.trainer.dagger, total_updates=cfg.trainer.num_updates, seed=seed,
+                            revisit_penalty=cfg.agent.revisit_penalty)
     trainer.start()
     return trainer
 
@@ -80,7 +76,7 @@ def main(argv: list[str] | None = None) -> None:
         for _ in range(args.rounds):
             for cache in (False, True):
                 times[cache].append(time_updates(make_trainer(images, args.variant, cache), args.updates))
-    print(f"\nDAgger update of the robust preset ({args.variant}, {SIZE}x{SIZE}, GRU 256, 16 envs, epochs 8), "
+    print(f"\nDAgger update of the robust preset ({args.variant}; configs/experiment/robust.yaml), "
           f"{args.threads} thread(s), {args.rounds} x {args.updates} updates per setting")
     print(f"{'fixed inputs':>22} | {'s / update':>10} | {'gradient steps':>14}")
     mean = {c: [sum(x[i] for x in times[c]) / len(times[c]) for i in (0, 1)] for c in times}
