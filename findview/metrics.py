@@ -34,6 +34,8 @@ __all__ = [
     "METRIC_KEYS",
     "make_record",
     "episode_spl",
+    "blind_search_path",
+    "blind_search_spl",
     "aggregate",
     "summarize",
     "format_table",
@@ -128,6 +130,58 @@ def episode_spl(record: Mapping[str, Any]) -> float:
     shortest = _record_shortest(record)
     steps = float(record["steps"])
     return shortest / max(steps, shortest)
+
+
+def blind_search_path(
+    init_pitch: int, init_yaw: int, target_pitch: int, target_yaw: int, fov: float, direction: str = "right"
+) -> int:
+    """Steps (the stop included) of a *blind search* from ``(init_pitch, init_yaw)`` to the target (degrees).
+
+    The blind searcher knows nothing of where the target lies until its view overlaps the target's (the
+    overlap rule of the difficulties: ``|dpitch| <= fov`` and ``|dyaw| <= fov``, ``fov`` the horizontal field
+    of view in degrees); it recognises the target in the first overlapping view and then takes a shortest
+    path. Until then it pans one way (``direction``: ``"right"`` or ``"left"``). Its yaw travel is the yaw
+    distance to the target in that direction (``360 - |dyaw|`` the wrong way round) and its pitch travel
+    ``|dpitch|``; a start that already overlaps takes the shortest path ``L*``. Where ``|dpitch| > fov`` no
+    pan overlaps and the pitch would have to be searched too, so the count is a lower bound there.
+
+    Every agent that does not know the target's side before the views overlap (the ``hard`` starts) needs at
+    least these steps, so ``L* / blind_search_path`` bounds its SPL from above on average over the sides.
+    """
+    if direction not in ("right", "left"):
+        raise ValueError(f"direction must be 'right' or 'left', got {direction!r}")
+    dp = abs(int(target_pitch) - int(init_pitch))
+    dy = ((int(target_yaw) - int(init_yaw) + 180) % 360) - 180  # (-180, 180)
+    if dy == -180:
+        dy = 180
+    if dp <= fov and abs(dy) <= fov:
+        return dp + abs(dy) + 1
+    travel = dy % 360 if direction == "right" else (-dy) % 360
+    return dp + travel + 1
+
+
+def blind_search_spl(episodes: Iterable[Episode | Mapping[str, Any]], fov: float) -> dict[str, float | int]:
+    """Mean SPL of the blind search (:func:`blind_search_path`) over ``episodes``, panning right, panning left
+    and choosing the side by a fair coin (the mean of the two per episode): ``{"right", "left", "coin",
+    "episodes"}``, fractions in ``[0, 1]`` (NaN for no episodes). ``episodes``: :class:`Episode` objects or
+    records with ``init_pitch, init_yaw, target_pitch, target_yaw``.
+
+    An agent with no cue to the target's side before the views overlap cannot expect more than ``coin`` on
+    such episodes; one fixed side can do better or worse on one particular set of episodes.
+    """
+    right = left = 0.0
+    n = 0
+    for e in episodes:
+        get = (lambda k: getattr(e, k)) if isinstance(e, Episode) else e.__getitem__
+        pose = (int(get("init_pitch")), int(get("init_yaw")), int(get("target_pitch")), int(get("target_yaw")))
+        shortest = l1_distance(*pose) + 1
+        right += shortest / blind_search_path(*pose, fov, "right")
+        left += shortest / blind_search_path(*pose, fov, "left")
+        n += 1
+    if n == 0:
+        nan = float("nan")
+        return {"right": nan, "left": nan, "coin": nan, "episodes": 0}
+    return {"right": right / n, "left": left / n, "coin": (right + left) / (2 * n), "episodes": n}
 
 
 def aggregate(records: Iterable[Mapping[str, Any]]) -> dict[str, float | int]:

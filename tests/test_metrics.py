@@ -8,7 +8,16 @@ import math
 import pytest
 
 from findview.episode import Episode
-from findview.metrics import RECORD_KEYS, aggregate, episode_spl, format_table, make_record, summarize
+from findview.metrics import (
+    RECORD_KEYS,
+    aggregate,
+    blind_search_path,
+    blind_search_spl,
+    episode_spl,
+    format_table,
+    make_record,
+    summarize,
+)
 
 
 def _ep(init=(0, 0), target=(0, 20), difficulty="easy", eid="e") -> Episode:
@@ -113,3 +122,68 @@ def test_format_table_layouts():
     assert ml[2].startswith("| orb | 0.00 | 100.0% | 100.0% | 100.0% | 1.00 |")
     assert ml[2].rstrip().endswith("- | - | - | - |")
     assert len(ml) == 4
+
+
+def test_blind_search_path_by_hand():
+    # target 120 degrees to the right at the same pitch, FoV 90: no overlap at the start
+    assert blind_search_path(0, 0, 0, 120, 90, "right") == 121  # pans the short way: L* = 121
+    assert blind_search_path(0, 0, 0, 120, 90, "left") == 241  # the long way round: 360 - 120 + stop
+    # across the seam: from yaw 170 to -70 is 120 to the right
+    assert blind_search_path(0, 170, 0, -70, 90, "right") == 121
+    assert blind_search_path(0, 170, 0, -70, 90, "left") == 241
+    # pitch adds on both sides: 30 up, 100 to the left
+    assert blind_search_path(-10, 0, 20, -100, 90, "left") == 30 + 100 + 1
+    assert blind_search_path(-10, 0, 20, -100, 90, "right") == 30 + 260 + 1
+    # an overlapping start (|dpitch| <= fov, |dyaw| <= fov) takes the shortest path whichever side
+    assert blind_search_path(10, 0, -20, -60, 90, "right") == blind_search_path(10, 0, -20, -60, 90, "left") == 91
+    # exactly 180 apart: both sides are as long
+    assert blind_search_path(0, 0, 0, 180, 90, "right") == blind_search_path(0, 0, 0, 180, 90, "left") == 181
+    with pytest.raises(ValueError, match="direction"):
+        blind_search_path(0, 0, 0, 120, 90, "up")
+
+
+def test_blind_search_spl_means_and_coin():
+    episodes = [
+        {"init_pitch": 0, "init_yaw": 0, "target_pitch": 0, "target_yaw": 120},  # right 1, left 121/241
+        Episode("e", "img.jpg", 0, 0, 0, -150, "hard"),  # right 151/211, left 1
+    ]
+    b = blind_search_spl(episodes, 90)
+    assert b["episodes"] == 2
+    assert b["right"] == pytest.approx((1 + 151 / 211) / 2)
+    assert b["left"] == pytest.approx((121 / 241 + 1) / 2)
+    assert b["coin"] == pytest.approx((b["right"] + b["left"]) / 2)
+    # every start overlapping: the bound is 1 (nothing to search)
+    assert blind_search_spl([{"init_pitch": 0, "init_yaw": 0, "target_pitch": 5, "target_yaw": 40}], 90)["coin"] == 1.0
+    assert math.isnan(blind_search_spl([], 90)["coin"])
+
+
+def test_search_bound_script_tables(tmp_path, capsys):
+    import importlib.util
+    import pathlib
+
+    spec = importlib.util.spec_from_file_location(
+        "search_bound", pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "search_bound.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    hard = [
+        {"episode_id": "a", "difficulty": "hard", "init_pitch": 0, "init_yaw": 0, "target_pitch": 0, "target_yaw": 120},
+        {"episode_id": "b", "difficulty": "hard", "init_pitch": 0, "init_yaw": 0, "target_pitch": 0, "target_yaw": -150},
+    ]
+    episode_file = tmp_path / "val_fov90.json"
+    episode_file.write_text(json.dumps({"fov": 90, "episodes": hard}))
+    # an eval run folder: the agent panned right on both (exact stops, 121 and 211 steps)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"fov": 90.0}))
+    records = [dict(hard[0], steps=121, called_stop=True, eps=0), dict(hard[1], steps=211, called_stop=True, eps=0)]
+    (run / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    mod.main([str(episode_file), str(run)])
+    out = capsys.readouterr().out
+    right = 100 * (1 + 151 / 211) / 2
+    assert f"| hard | 2 | {right:.1f}% |" in out
+    # the agent that panned right on both reaches the pan-right bound exactly
+    assert out.count(f"{right:.1f}%") == 3 and "| 100.0% |" in out
+    (tmp_path / "bad.json").write_text(json.dumps([1, 2]))
+    with pytest.raises(SystemExit, match="not a findview episode file"):
+        mod.main([str(tmp_path / "bad.json")])
