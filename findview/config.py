@@ -121,7 +121,8 @@ class DatasetConfig:
     root: Optional[str] = None
     """Folder with the panoramas (synthetic: where they are generated)."""
     subset: Optional[str] = None
-    """sun360 only: indoor | outdoor | others | all."""
+    """sun360 only: indoor | outdoor | others | all, or several folders joined by '+' (indoor+outdoor: each folder
+    split on its own, so its val / test images are those of its own data set)."""
     out_dir: str = "data/${.name}"
     """Where splits.json and episodes/ are written (relative paths: the launch folder)."""
     split: list[float] = field(default_factory=lambda: [0.8, 0.1, 0.1])

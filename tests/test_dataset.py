@@ -109,6 +109,9 @@ def test_discover_sun360_mini(sun360_mini: Path, sun360_mini_files: list[Path]) 
 def test_discover_sun360_errors(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="subset"):
         discover_sun360(tmp_path, "kitchen")
+    for bad in ("indoor+kitchen", "indoor+indoor", "all+indoor", "indoor+"):
+        with pytest.raises(DatasetError, match=r"unknown SUN360 subset.*joined by '\+'"):
+            discover_sun360(tmp_path, bad)
     with pytest.raises(DatasetError, match=r"SUN360 root folder not found.*indoor\|outdoor\|others"):
         discover_sun360(tmp_path / "nope", "indoor")
     (tmp_path / "indoor" / "bedroom").mkdir(parents=True)
@@ -629,3 +632,20 @@ def test_prepare_sun360_mini(sun360_mini: Path, tmp_path: Path) -> None:
     assert set().union(*(set(v) for v in s.labels.values())) == {"bedroom", "greenhouse", "museum", "office"}
     eps = load_episodes(episode_file(tmp_path, "val", 90))
     assert len(eps) == 3 * s.images["val"] and all(Path(e.image).is_file() for e in eps)
+
+
+def test_prepare_sun360_indoor_plus_outdoor_keeps_each_folder_split(sun360_mini: Path, tmp_path: Path) -> None:
+    """dataset.subset=indoor+outdoor: the union of the indoor and the outdoor data sets' own splits (split folder
+    by folder), so no val / test image of either trains; a joint split of the same 32 images would differ."""
+    def splits(subset: str) -> dict[str, set[str]]:
+        out = tmp_path / subset
+        cfg = {"name": subset, "kind": "sun360", "root": str(sun360_mini), "subset": subset, "out_dir": str(out),
+               "validate": False}
+        prepare_dataset(cfg, [90], progress=False)
+        return {split: {Path(e.path).name for e in load_split(out, split)} for split in ("train", "val", "test")}
+
+    indoor, outdoor, both = splits("indoor"), splits("outdoor"), splits("indoor+outdoor")
+    for split in ("train", "val", "test"):
+        assert both[split] == indoor[split] | outdoor[split]
+    assert sum(len(v) for v in both.values()) == 32
+    assert not (both["train"] & (indoor["test"] | outdoor["test"] | indoor["val"] | outdoor["val"]))

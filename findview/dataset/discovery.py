@@ -3,7 +3,8 @@
 Layouts (docs/TASK.md, Datasets and splits):
 
 - ``sun360``: ``<root>/<indoor|outdoor|others>/<sub-category>/pano_*.jpg``. ``subset`` picks
-  ``indoor``, ``outdoor``, ``others`` or ``all``. The label is the sub-category (the first folder below
+  ``indoor``, ``outdoor``, ``others``, ``all`` or a ``+``-joined list such as ``indoor+outdoor``
+  (:func:`sun360_parts`; such a list is split part by part, see :mod:`findview.dataset.prepare`). The label is the sub-category (the first folder below
   ``indoor/`` or ``outdoor/``); every image under ``others/`` (flat or in sub-folders) is labelled
   ``"others"``; an image lying directly in ``indoor/`` or ``outdoor/`` is labelled with that name.
 - ``indoor360``: a flat folder of panoramas (searched recursively), label ``"indoor360"``.
@@ -32,6 +33,7 @@ __all__ = [
     "ImageEntry",
     "KINDS",
     "SUN360_SUBSETS",
+    "sun360_parts",
     "SUN360_LAYOUT",
     "discover",
     "discover_sun360",
@@ -82,12 +84,31 @@ def _ext_list() -> str:
     return "/".join(e.lstrip(".") for e in IMAGE_EXTENSIONS)
 
 
+def sun360_parts(subset: str) -> tuple[str, ...]:
+    """The SUN360 folders a ``subset`` names: ``("indoor",)`` for ``indoor``, ``("indoor", "outdoor")`` for
+    ``indoor+outdoor``; ``all`` stays ``("all",)`` (one joint split of the three folders).
+
+    Raises:
+        DatasetError: an unknown name, ``all`` in a list, or a folder named twice.
+    """
+    if subset in SUN360_SUBSETS:
+        return (subset,)
+    parts = tuple(str(subset).split("+"))
+    ok = {"indoor", "outdoor", "others"}
+    if len(parts) < 2 or any(p not in ok for p in parts) or len(set(parts)) != len(parts):
+        raise DatasetError(
+            f"unknown SUN360 subset {subset!r}; valid: {', '.join(SUN360_SUBSETS)}, or several of indoor, outdoor "
+            f"and others joined by '+' (each once), e.g. indoor+outdoor"
+        )
+    return parts
+
+
 def discover_sun360(root: str | os.PathLike, subset: str = "indoor") -> list[ImageEntry]:
     """List the panoramas of a SUN360 copy laid out as :data:`SUN360_LAYOUT`.
 
     Args:
         root: the folder holding ``indoor/``, ``outdoor/`` and ``others/``.
-        subset: ``indoor``, ``outdoor``, ``others`` or ``all``.
+        subset: ``indoor``, ``outdoor``, ``others``, ``all`` or a ``+``-joined list (:func:`sun360_parts`).
 
     Returns:
         Entries sorted by path, labels = sub-category (``"others"`` for the ``others`` folder).
@@ -95,10 +116,9 @@ def discover_sun360(root: str | os.PathLike, subset: str = "indoor") -> list[Ima
     Raises:
         DatasetError: unknown subset, missing root / subset folder, or no image found.
     """
-    if subset not in SUN360_SUBSETS:
-        raise DatasetError(f"unknown SUN360 subset {subset!r}; valid: {', '.join(SUN360_SUBSETS)}")
+    parts = sun360_parts(subset)
     root = _check_folder(Path(root).expanduser().resolve(), "SUN360 root", f"the SUN360 layout {SUN360_LAYOUT}")
-    parts = ("indoor", "outdoor", "others") if subset == "all" else (subset,)
+    parts = ("indoor", "outdoor", "others") if parts == ("all",) else parts
     present = [p for p in parts if (root / p).is_dir()]
     if not present:
         missing = root / parts[0] if len(parts) == 1 else root

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping
 
 from findview.dataset.difficulty import MIN_PATH, check_fov, check_hard_rule, check_pitch_bound
-from findview.dataset.discovery import KINDS, DatasetError, ImageEntry, discover, validate_images
+from findview.dataset.discovery import KINDS, DatasetError, ImageEntry, discover, sun360_parts, validate_images
 from findview.dataset.episodes import episode_file, make_static_episodes, write_episode_file
 from findview.dataset.splits import SPLITS, SPLITS_FILE, load_split, normalize_ratios, read_splits, split_entries, write_splits
 from findview.dataset.synthetic import GENERATOR_VERSION, ensure_synthetic_images
@@ -444,12 +444,19 @@ def _split_images(st: Mapping[str, Any], root: Path, out_dir: Path, fp: str, reu
     if reused:
         say(f"reusing {out_dir / SPLITS_FILE}")
         return {s: load_split(out_dir, s) for s in SPLITS}
-    if entries is None:
-        entries = discover(st["kind"], root, st["subset"])
-    say(f"found {len(entries)} images under {root}")
-    if st["validate"]:
-        validate_images(entries, progress=progress)
-    split_images = split_entries(entries, root, st["split"], st["split_seed"])
+    # a sun360 list such as indoor+outdoor is split folder by folder, so that each folder's images land in the
+    # splits they have in that folder's own data set (no test image of dataset.subset=outdoor trains here)
+    parts = sun360_parts(st["subset"]) if st["kind"] == "sun360" and entries is None else (st["subset"],)
+    split_images = {s: [] for s in SPLITS}
+    for part in parts:
+        found = entries if entries is not None else discover(st["kind"], root, part)
+        say(f"found {len(found)} images under {root}" + (f" ({part})" if len(parts) > 1 else ""))
+        if st["validate"]:
+            validate_images(found, progress=progress)
+        for s, images in split_entries(found, root, st["split"], st["split_seed"]).items():
+            split_images[s].extend(images)
+    for s in SPLITS:
+        split_images[s].sort()
     extra = {"kind": st["kind"], "subset": st["subset"], "fingerprint": fp}
     write_splits(out_dir, split_images, dataset=st["name"], root=root, seed=st["split_seed"], ratios=st["split"], extra=extra)
     say(f"wrote {out_dir / SPLITS_FILE}")
