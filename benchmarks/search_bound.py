@@ -11,7 +11,9 @@ its shortfall is search (recognising the target late, detours) and how much is t
     python benchmarks/search_bound.py outputs/eval/<run>                                  # an eval run folder
 
 An eval run folder (``episodes.jsonl`` and ``run.json`` from ``tools/eval.py``) adds the agent's own SPL per
-difficulty; several inputs print one table each.
+difficulty, its share of exact stops, and the share of exact stops made on the first pass: within the longer
+side's blind path (+10 steps), i.e. without passing the target and going round again. Several inputs print one
+table each.
 """
 
 from __future__ import annotations
@@ -24,7 +26,20 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from findview.episode import DIFFICULTIES  # noqa: E402
-from findview.metrics import aggregate, blind_search_spl  # noqa: E402
+from findview.metrics import aggregate, blind_search_path, blind_search_spl  # noqa: E402
+
+#: steps of slack over a blind path for a stop to count as found "on the way" (a few moves to centre the view)
+SLACK_STEPS = 10
+
+
+def on_blind_path(record: dict, fov: float) -> bool:
+    """Whether an exact stop took at most the longer side's blind path (+ :data:`SLACK_STEPS`): the agent found
+    the target on its first pass, whichever side it panned, instead of passing it and going round again."""
+    if not (record["called_stop"] and record["eps"] == 0):
+        return False
+    pose = (record["init_pitch"], record["init_yaw"], record["target_pitch"], record["target_yaw"])
+    longer = max(blind_search_path(*pose, fov, "right"), blind_search_path(*pose, fov, "left"))
+    return int(record["steps"]) <= longer + SLACK_STEPS
 
 
 def _load(path: Path, fov: float | None) -> tuple[list[dict], float, bool]:
@@ -56,13 +71,14 @@ def _load(path: Path, fov: float | None) -> tuple[list[dict], float, bool]:
 
 def table(path: Path, fov: float | None = None) -> str:
     """The markdown table of one input: per difficulty the blind-search SPL (right, left, coin) and, for an eval
-    run, the agent's SPL and the share of its episodes that ended exactly on the target."""
+    run, the agent's SPL, the share of its episodes that ended exactly on the target and the share that did so on
+    the first pass (:func:`on_blind_path`)."""
     items, fov, has_agent = _load(path, fov)
     head = "| difficulty | episodes | blind, pan right | blind, pan left | blind, coin |"
     rule = "|---|---|---|---|---|"
     if has_agent:
-        head += " agent SPL | agent exact stops |"
-        rule += "---|---|"
+        head += " agent SPL | agent exact stops | exact, first pass |"
+        rule += "---|---|---|"
     lines = [f"{path} (FoV {fov:g})", "", head, rule]
     for difficulty in DIFFICULTIES:
         group = [e for e in items if e.get("difficulty") == difficulty]
@@ -73,7 +89,8 @@ def table(path: Path, fov: float | None = None) -> str:
         if has_agent:
             m = aggregate(group)
             exact = sum(1 for r in group if r["called_stop"] and r["eps"] == 0) / len(group)
-            row += f" {100 * m['spl']:.1f}% | {100 * exact:.1f}% |"
+            first = sum(on_blind_path(r, fov) for r in group) / len(group)
+            row += f" {100 * m['spl']:.1f}% | {100 * exact:.1f}% | {100 * first:.1f}% |"
         lines.append(row)
     return "\n".join(lines)
 

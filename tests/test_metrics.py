@@ -172,7 +172,7 @@ def test_search_bound_script_tables(tmp_path, capsys):
     ]
     episode_file = tmp_path / "val_fov90.json"
     episode_file.write_text(json.dumps({"fov": 90, "episodes": hard}))
-    # an eval run folder: the agent panned right on both (exact stops, 121 and 211 steps)
+    # an eval run folder: the agent panned right on both (exact stops, 121 and 211 steps: first passes)
     run = tmp_path / "run"
     run.mkdir()
     (run / "run.json").write_text(json.dumps({"fov": 90.0}))
@@ -182,8 +182,13 @@ def test_search_bound_script_tables(tmp_path, capsys):
     out = capsys.readouterr().out
     right = 100 * (1 + 151 / 211) / 2
     assert f"| hard | 2 | {right:.1f}% |" in out
-    # the agent that panned right on both reaches the pan-right bound exactly
-    assert out.count(f"{right:.1f}%") == 3 and "| 100.0% |" in out
+    # the agent that panned right on both reaches the pan-right bound exactly, every stop exact and on its first pass
+    assert out.count(f"{right:.1f}%") == 3 and "| 100.0% | 100.0% |" in out
+    # the same stops after a full extra turn are exact but not first passes
+    records = [dict(r, steps=r["steps"] + 360) for r in records]
+    (run / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    mod.main([str(run)])
+    assert "| 100.0% | 0.0% |" in capsys.readouterr().out
     (tmp_path / "bad.json").write_text(json.dumps([1, 2]))
     with pytest.raises(SystemExit, match="not a findview episode file"):
         mod.main([str(tmp_path / "bad.json")])
