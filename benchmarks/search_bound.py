@@ -88,7 +88,7 @@ def table(path: Path, fov: float | None = None) -> str:
         row = f"| {difficulty} | {b['episodes']} | {100 * b['right']:.1f}% | {100 * b['left']:.1f}% | {100 * b['coin']:.1f}% |"
         if has_agent:
             m = aggregate(group)
-            exact = sum(1 for r in group if r["called_stop"] and r["eps"] == 0) / len(group)
+            exact = m["omega_stop"] * m["omega_perf"]  # stopped, and of those exact: the share of exact stops
             first = sum(on_blind_path(r, fov) for r in group) / len(group)
             row += f" {100 * m['spl']:.1f}% | {100 * exact:.1f}% | {100 * first:.1f}% |"
         lines.append(row)

@@ -27,7 +27,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from findview.episode import DIFFICULTIES, Episode
-from findview.geometry import l1_distance
+from findview.geometry import l1_distance, yaw_diff
 
 __all__ = [
     "RECORD_KEYS",
@@ -151,13 +151,10 @@ def blind_search_path(
     if direction not in ("right", "left"):
         raise ValueError(f"direction must be 'right' or 'left', got {direction!r}")
     dp = abs(int(target_pitch) - int(init_pitch))
-    dy = ((int(target_yaw) - int(init_yaw) + 180) % 360) - 180  # (-180, 180)
-    if dy == -180:
-        dy = 180
-    if dp <= fov and abs(dy) <= fov:
-        return dp + abs(dy) + 1
-    travel = dy % 360 if direction == "right" else (-dy) % 360
-    return dp + travel + 1
+    if dp <= fov and yaw_diff(int(target_yaw), int(init_yaw)) <= fov:
+        return l1_distance(init_pitch, init_yaw, target_pitch, target_yaw) + 1
+    turn = int(target_yaw) - int(init_yaw)  # RIGHT raises the yaw
+    return dp + (turn if direction == "right" else -turn) % 360 + 1
 
 
 def blind_search_spl(episodes: Iterable[Episode | Mapping[str, Any]], fov: float) -> dict[str, float | int]:
@@ -172,8 +169,8 @@ def blind_search_spl(episodes: Iterable[Episode | Mapping[str, Any]], fov: float
     right = left = 0.0
     n = 0
     for e in episodes:
-        get = (lambda k: getattr(e, k)) if isinstance(e, Episode) else e.__getitem__
-        pose = (int(get("init_pitch")), int(get("init_yaw")), int(get("target_pitch")), int(get("target_yaw")))
+        d = e.to_dict() if isinstance(e, Episode) else e
+        pose = (int(d["init_pitch"]), int(d["init_yaw"]), int(d["target_pitch"]), int(d["target_yaw"]))
         shortest = l1_distance(*pose) + 1
         right += shortest / blind_search_path(*pose, fov, "right")
         left += shortest / blind_search_path(*pose, fov, "left")

@@ -4,9 +4,9 @@ Layouts (docs/TASK.md, Datasets and splits):
 
 - ``sun360``: ``<root>/<indoor|outdoor|others>/<sub-category>/pano_*.jpg``. ``subset`` picks
   ``indoor``, ``outdoor``, ``others``, ``all`` or a ``+``-joined list such as ``indoor+outdoor``
-  (:func:`sun360_parts`; such a list is split part by part, see :mod:`findview.dataset.prepare`). The label is the sub-category (the first folder below
-  ``indoor/`` or ``outdoor/``); every image under ``others/`` (flat or in sub-folders) is labelled
-  ``"others"``; an image lying directly in ``indoor/`` or ``outdoor/`` is labelled with that name.
+  (:func:`sun360_parts`; such a list is split part by part, see :mod:`findview.dataset.prepare`). The label
+  is the sub-category (the first folder below ``indoor/`` or ``outdoor/``); every image under ``others/``
+  (flat or in sub-folders) is labelled ``"others"``; an image lying directly in ``indoor/`` or ``outdoor/`` is labelled with that name.
 - ``indoor360``: a flat folder of panoramas (searched recursively), label ``"indoor360"``.
 - ``folder``: any folder, searched recursively; the label is the image's parent folder relative to the
   root (POSIX form, e.g. ``"kitchen"`` or ``"a/b"``), and the root folder's own name for images lying
