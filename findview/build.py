@@ -63,7 +63,8 @@ def build_target_transform(corruption_cfg: CorruptionConfig | None):
 
     severity = corruption_cfg.severity
     levels = [int(s) for s in severity] if isinstance(severity, Sequence) and not isinstance(severity, str) else [int(severity)]
-    return EpisodeCorruption(names, min(levels), max(levels), float(corruption_cfg.clean_fraction))
+    weights = {str(k): float(v) for k, v in corruption_cfg.weights.items()} if corruption_cfg.weights else None
+    return EpisodeCorruption(names, min(levels), max(levels), float(corruption_cfg.clean_fraction), weights)
 
 
 def build_env(

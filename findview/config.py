@@ -188,6 +188,9 @@ class CorruptionConfig:
     """Share of episodes (0-1, drawn per episode from its seed) whose target stays clean although a
     corruption is named: training with corruptions keeps seeing exact matches. 0 keeps every episode's draw
     as it was."""
+    weights: Any = None
+    """Relative draw weight per corruption name, e.g. {fog: 3, frost: 2} (names left out weigh 1; each a
+    name that `name` draws). None draws uniformly, exactly as before the option existed."""
 
     def __post_init__(self) -> None:
         sev = self.severity
@@ -207,6 +210,16 @@ class CorruptionConfig:
             names = resolve_names(name)
         except ValueError as err:
             raise ConfigError(f"corruption.name={name!r}: {err}") from None
+        if self.weights is not None:
+            weights = self.weights
+            check(hasattr(weights, "items") and all(isinstance(k, str) for k in weights), "corruption.weights", weights,
+                  "a mapping from corruption names to weights, e.g. {fog: 3, frost: 2}")
+            unknown = sorted(set(weights) - set(names))
+            check(not unknown, "corruption.weights", dict(weights), f"weights only for the drawn names {list(names)}")
+            values = [w for w in weights.values()]
+            numeric = all(isinstance(w, (int, float)) and not isinstance(w, bool) and w >= 0 for w in values)
+            total = sum(values) + len(set(names) - set(weights)) if numeric else 0
+            check(numeric and total > 0, "corruption.weights", dict(weights), "numbers >= 0, not all 0")
         if "frost" in names:
             try:
                 check_frost_textures()

@@ -70,3 +70,32 @@ def test_the_severity_ramp_bounds_the_drawn_severity(episodes) -> None:
     assert {chooser.choice(ep)[1] for ep in episodes} == {1}
     chooser.max_severity = 5
     assert max(chooser.choice(ep)[1] for ep in episodes) > 1
+
+
+def test_weighted_draws_follow_the_weights_and_uniform_stays_as_before() -> None:
+    names = ["gaussian_noise", "fog", "contrast"]
+    eps = [Episode(f"w{i}", "p.png", 0, 0, 0, 10, seed=7 * i + 1) for i in range(3000)]
+    uniform = EpisodeCorruption(names, 1, 5)
+    # an empty mapping is the uniform draw, episode for episode
+    assert [uniform.choice(e) for e in eps[:200]] == [EpisodeCorruption(names, 1, 5, weights={}).choice(e) for e in eps[:200]]
+    weighted = EpisodeCorruption(names, 1, 5, weights={"fog": 3})  # fog 3 / 5, the others 1 / 5 each
+    draws = [weighted.choice(e)[0] for e in eps]
+    share = draws.count("fog") / len(draws)
+    assert abs(share - 0.6) < 4 * (0.6 * 0.4 / len(draws)) ** 0.5  # four standard errors of a binomial share
+    assert abs(draws.count("contrast") / len(draws) - 0.2) < 4 * (0.2 * 0.8 / len(draws)) ** 0.5
+    never = EpisodeCorruption(names, 1, 5, weights={"fog": 0})
+    assert "fog" not in {never.choice(e)[0] for e in eps[:500]}
+    with pytest.raises(ValueError, match="corruption.weights"):
+        EpisodeCorruption(names, 1, 5, weights={"snow": 2})  # snow is not drawn here
+
+
+def test_weights_reach_the_environment_through_the_config() -> None:
+    from findview.build import build_target_transform
+    from findview.config import ConfigError
+
+    cfg = as_section({"name": ["fog", "snow"], "severity": 3, "weights": {"snow": 0}}, CorruptionConfig)
+    chooser = build_target_transform(cfg)
+    eps = [Episode(f"c{i}", "p.png", 0, 0, 0, 10, seed=i) for i in range(100)]
+    assert {chooser.choice(e) for e in eps} == {("fog", 3)}
+    with pytest.raises(ConfigError, match="corruption.weights"):
+        as_section({"name": "weather", "weights": {"contrast": 2}}, CorruptionConfig)  # contrast is digital

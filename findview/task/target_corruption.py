@@ -8,7 +8,7 @@ and every rerun sees the very same corrupted target for the same episode. The cu
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -25,9 +25,12 @@ class EpisodeCorruption:
     """Corrupt each episode's target once, reproducibly from ``episode.seed``.
 
     Args:
-        names: corruption names to draw from (uniformly, per episode).
+        names: corruption names to draw from (per episode; uniformly unless ``weights`` says otherwise).
         low, high: severity range (inclusive, 1-5), drawn uniformly per episode.
         clean_fraction: share of episodes (drawn per episode, from its seed) whose target stays clean; 0 draws
+            exactly as before the option existed.
+        weights: relative draw weight of each name (a mapping; names it leaves out weigh 1), e.g. ``{"fog": 3}``
+            draws fog three times as often as any other name; ``None`` (or an empty mapping) draws uniformly,
             exactly as before the option existed.
 
     Attributes:
@@ -35,7 +38,10 @@ class EpisodeCorruption:
             from ``low`` to ``high`` when ``corruption.ramp_updates > 0``.
     """
 
-    def __init__(self, names: Sequence[str], low: int, high: int, clean_fraction: float = 0.0) -> None:
+    def __init__(
+        self, names: Sequence[str], low: int, high: int, clean_fraction: float = 0.0,
+        weights: Mapping[str, float] | None = None,
+    ) -> None:
         if not names:
             raise ValueError("EpisodeCorruption needs at least one corruption name")
         if not 1 <= int(low) <= int(high) <= 5:
@@ -46,6 +52,15 @@ class EpisodeCorruption:
         self.low, self.high = int(low), int(high)
         self.clean_fraction = float(clean_fraction)
         self.max_severity = self.high
+        self.cumulative: np.ndarray | None = None  # cumulative draw probabilities when weighted
+        if weights:
+            unknown = sorted(set(weights) - set(self.names))
+            if unknown:
+                raise ValueError(f"corruption.weights names {unknown}, which are not drawn here; expected some of {self.names}")
+            w = np.array([float(weights.get(n, 1.0)) for n in self.names])
+            if not (np.isfinite(w).all() and (w >= 0).all() and w.sum() > 0):
+                raise ValueError(f"corruption.weights={dict(weights)}: expected weights >= 0, not all 0")
+            self.cumulative = np.cumsum(w / w.sum())
 
     def choice(self, episode: Episode) -> tuple[str, int]:
         """The ``(name, severity)`` this episode's target gets (a function of its seed and ``max_severity``);
@@ -54,7 +69,11 @@ class EpisodeCorruption:
             if np.random.default_rng([int(episode.seed) % 2**63, _STREAM, 1]).random() < self.clean_fraction:
                 return "none", 0
         rng = np.random.default_rng([int(episode.seed) % 2**63, _STREAM])
-        name = self.names[int(rng.integers(len(self.names)))]
+        if self.cumulative is None:
+            name = self.names[int(rng.integers(len(self.names)))]
+        else:
+            index = int(np.searchsorted(self.cumulative, rng.random(), side="right"))
+            name = self.names[min(index, len(self.names) - 1)]
         severity = int(rng.integers(self.low, max(self.low, self.max_severity) + 1))
         return name, severity
 
