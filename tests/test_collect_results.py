@@ -114,6 +114,20 @@ def test_every_differing_setting_splits(tmp_path):
     assert [g.context for g in group_runs(find_runs(other))] == [(("checkpoint", "runs/a/best.pth"),), (("checkpoint", "runs/b/best.pth"),)]
 
 
+def test_a_null_setting_is_the_same_as_an_absent_one(tmp_path):
+    """A run made before an optional field existed shares a table with a run that has it null; a set
+    value still splits (a sweep that ran across a code update must not fall into two tables)."""
+    fake_run(tmp_path, "old", {"hard": 1.0}, meta={"corruption": "fog", "severity": 3})
+    fake_run(tmp_path, "new", {"hard": 2.0}, agent="sift", meta={"corruption": "fog", "severity": 3},
+             corruption={"weights": None})
+    assert [len(g.runs) for g in group_runs(find_runs(tmp_path))] == [2]
+    fake_run(tmp_path, "weighted", {"hard": 3.0}, agent="rotation", meta={"corruption": "fog", "severity": 3},
+             corruption={"weights": {"fog": 3}})
+    groups = group_runs(find_runs(tmp_path))
+    assert sorted(len(g.runs) for g in groups) == [1, 2]
+    assert [g.context for g in groups if len(g.runs) == 1] == [(("corruption.weights.fog", "3"),)]
+
+
 def test_duplicate_cells_are_reported(tmp_path):
     fake_run(tmp_path, "0", {"easy": 1.0})
     fake_run(tmp_path, "1", {"easy": 4.0})

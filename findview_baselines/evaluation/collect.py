@@ -71,7 +71,8 @@ class EvalRun:
 
     ``settings`` are the run's config (``.hydra/config.yaml``) flattened to dotted keys, plus the
     ``corruption`` and ``severity`` of its targets, as comparable strings: runs whose settings differ
-    (other than in the columns / rows of a table) are never merged into one table.
+    (other than in the columns / rows of a table) are never merged into one table. Null settings are
+    left out (null and absent are the same setting).
     """
 
     path: Path
@@ -222,7 +223,9 @@ def find_runs(root: str | os.PathLike, warn: Any = None) -> list[EvalRun]:
         agent_cfg = cfg.get("agent") or {}
         dataset_cfg = cfg.get("dataset") or {}
         corruption, severity = corruption_of(cfg, meta)
-        settings = {k: v for k, v in _flatten(cfg).items() if not _ignored(k)}
+        # A null setting is the same as an absent one: a run made before an optional field existed
+        # (``corruption.weights``) belongs in the same table as a run with the field left null
+        settings = {k: v for k, v in _flatten(cfg).items() if not _ignored(k) and v != "null"}
         settings = {k: v for k, v in settings.items() if k not in ("corruption", "corruption.name", "corruption.severity", "severity")}
         settings["corruption"], settings["severity"] = corruption, str(severity)
         split = str(cfg.get("split", "?"))
