@@ -333,6 +333,9 @@ class TrainerConfig:
     """TensorBoard scalars every this many updates."""
     checkpoint_interval: int = 100
     """Write checkpoints/latest.pth every this many updates (and at every validation and the end)."""
+    keep_val_checkpoints: bool = False
+    """Also keep the weights of every validation as checkpoints/val_u<update>.pth (to choose among them on a
+    larger val set than the trainer's; about 4 MB each for the robust preset)."""
     resume: bool = True
     """Continue from checkpoints/latest.pth of the run folder if it exists."""
     stop_after: Optional[int] = None

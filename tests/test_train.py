@@ -53,6 +53,22 @@ def test_resume_gives_the_same_weights_as_one_run(make_cfg, reference_run: Path,
     assert again.completed and again.updates == 6 and load(tmp_path / "checkpoints" / "latest.pth")["env_steps"] == 96
 
 
+def test_keep_val_checkpoints_writes_every_validation(make_cfg, reference_run: Path, tmp_path: Path) -> None:
+    """trainer.keep_val_checkpoints: val_u<update>.pth at each validation (3 and 6), weights only; the run's
+    weights are those of the run without the option, and best.pth is the one of the two with the lower val eps."""
+    train(make_cfg(**{"trainer.keep_val_checkpoints": True}), tmp_path)
+    ckpt_dir = tmp_path / "checkpoints"
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == ["best.pth", "latest.pth", "val_u00003.pth", "val_u00006.pth"]
+    kept = {u: load(ckpt_dir / f"val_u{u:05d}.pth") for u in (3, 6)}
+    assert [kept[u]["update"] for u in (3, 6)] == [3, 6] and all(k["trainer"] is None for k in kept.values())
+    reference = load(reference_run / "checkpoints" / "latest.pth")
+    for name, tensor in reference["policy"].items():
+        assert torch.equal(tensor, kept[6]["policy"][name]), name
+    lower = min((3, 6), key=lambda u: kept[u]["val"]["all"]["eps"])
+    best = load(ckpt_dir / "best.pth")
+    assert best["update"] == lower and all(torch.equal(t, kept[lower]["policy"][n]) for n, t in best["policy"].items())
+
+
 def test_checkpoints_load_with_weights_only(reference_run: Path) -> None:
     ckpt_dir = reference_run / "checkpoints"
     assert sorted(p.name for p in ckpt_dir.iterdir()) == ["best.pth", "latest.pth"]  # no temp files left

@@ -159,12 +159,14 @@ class TensorBoardCallback(Callback):
 
 class ValidationCallback(Callback):
     """Every ``interval`` updates (and after the last one): play the val episodes with the learned-agent
-    wrapper through the evaluation harness; keep ``best.pth`` (lowest mean val eps). Ranks other than 0
-    pass ``val_env=None``: they keep rank 0's schedule (the collective checkpoint after it) in step."""
+    wrapper through the evaluation harness; keep ``best.pth`` (lowest mean val eps) and, with ``keep_all``,
+    every validation's weights as ``val_u<update>.pth`` beside it. Ranks other than 0 pass ``val_env=None``:
+    they keep rank 0's schedule (the collective checkpoint after it) in step."""
 
-    def __init__(self, val_env: Any, agent: Any, interval: int, at_end: bool, tb: TensorBoardCallback | None) -> None:
+    def __init__(self, val_env: Any, agent: Any, interval: int, at_end: bool, tb: TensorBoardCallback | None,
+                 keep_all: bool = False) -> None:
         self.env, self.agent = val_env, agent
-        self.interval, self.at_end, self.tb = interval, at_end, tb
+        self.interval, self.at_end, self.tb, self.keep_all = interval, at_end, tb, keep_all
 
     def validate(self, ctx: RunContext) -> dict[str, Any]:
         """Play the val episodes (rank 0 only: the other ranks have no val environment)."""
@@ -195,6 +197,8 @@ class ValidationCallback(Callback):
             return  # not rank 0
         ctx.last_val = self.validate(ctx)
         mean_eps = float(ctx.last_val["all"]["eps"])
+        if self.keep_all:
+            save_checkpoint(ctx.best_path.with_name(f"val_u{update:05d}.pth"), ctx.checkpoint(with_trainer=False))
         if ctx.best_val_eps is None or mean_eps < ctx.best_val_eps:
             ctx.best_val_eps = mean_eps
             save_checkpoint(ctx.best_path, ctx.checkpoint(with_trainer=False))

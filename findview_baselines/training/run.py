@@ -212,7 +212,7 @@ def _callbacks(ctx: RunContext, cfg: TrainConfig, val_env: Any, show_progress: b
     main_validates = distributed.all_gather(val_env is not None)[0]  # only rank 0 has val episodes
     if val_env is not None:
         agent = make_val_agent(cfg.agent, algo.policy, val_env.num_envs, t.seed)
-        callbacks.append(ValidationCallback(val_env, agent, t.val_interval, t.val_at_end, tb))
+        callbacks.append(ValidationCallback(val_env, agent, t.val_interval, t.val_at_end, tb, t.keep_val_checkpoints))
     elif main_validates:
         callbacks.append(ValidationCallback(None, None, t.val_interval, t.val_at_end, None))
     callbacks.append(CheckpointCallback(t.checkpoint_interval))
