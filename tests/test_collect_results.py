@@ -17,9 +17,11 @@ from findview_baselines.evaluation.results import (
     CollectError,
     corruption_of,
     corruption_table,
+    dataset_overrides,
     find_runs,
     group_runs,
     threshold_table,
+    tuned_config_text,
     tuned_thresholds,
 )
 
@@ -126,6 +128,21 @@ def test_a_null_setting_is_the_same_as_an_absent_one(tmp_path):
     groups = group_runs(find_runs(tmp_path))
     assert sorted(len(g.runs) for g in groups) == [1, 2]
     assert [g.context for g in groups if len(g.runs) == 1] == [(("corruption.weights.fog", "3"),)]
+
+
+def test_tuned_config_names_the_runs_data_set_options(tmp_path, collect):
+    """The tuned file's "Use it" line repeats the tuning runs' dataset overrides (a data set's name is not a
+    config of the dataset group); without .hydra/overrides.yaml it says so instead of guessing."""
+    run = fake_run(tmp_path, "0", {"easy": 1.0})
+    (run / ".hydra" / "overrides.yaml").write_text(
+        "- agent=orb\n- dataset=folder\n- dataset.root=/pics\n- dataset.name=toy\n- split=val\n- datasets_x=1\n")
+    assert dataset_overrides(run) == ["dataset=folder", "dataset.root=/pics", "dataset.name=toy"]
+    assert dataset_overrides(tmp_path / "missing") == []
+    assert collect([str(tmp_path)]) == 0
+    use = [line for line in (tmp_path / "orb_tuned_toy.yaml").read_text().splitlines() if "Use it" in line]
+    assert use == ["# Use it: cp orb_tuned_toy.yaml configs/agent/ && python tools/eval.py agent=orb_tuned_toy "
+                   "dataset=folder dataset.root=/pics dataset.name=toy"]
+    assert "dataset=toy" not in tuned_config_text("orb", "toy", {"easy": 20.0})
 
 
 def test_duplicate_cells_are_reported(tmp_path):

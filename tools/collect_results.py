@@ -50,6 +50,7 @@ from findview.utils import write_text
 from findview_baselines.evaluation.results import (
     CollectError,
     corruption_table,
+    dataset_overrides,
     find_runs,
     format_threshold,
     threshold_table,
@@ -151,7 +152,8 @@ def _run(args: argparse.Namespace) -> int:
         settings = ", ".join(f"{k}={v}" for k, v in group.context if k not in ("split", "dataset.name"))
         evaluated = {d for r in group.runs if r.agent == agent for d in r.difficulties()}
         text = tuned_config_text(agent, dataset, thresholds, source=str(root), split=group.split,
-                                 name=path.stem, settings=settings, untuned=sorted(evaluated - set(thresholds)))
+                                 name=path.stem, settings=settings, untuned=sorted(evaluated - set(thresholds)),
+                                 dataset_args=dataset_overrides(group.runs[0].path))
         picks = ", ".join(f"{d}={format_threshold(t)}" for d, t in thresholds.items())
         tag = "" if all(r.is_val for r in group.runs) else " (from test-split runs: allow_test_tuning=true)"
         where = f" ({settings})" if settings else ""

@@ -42,6 +42,7 @@ __all__ = [
     "threshold_table",
     "best_thresholds",
     "tuned_config_text",
+    "dataset_overrides",
     "CLEAR",
     "IGNORED_KEYS",
     "LEARNED_AGENT_KEYS",
@@ -518,6 +519,17 @@ def best_thresholds(runs: Sequence[EvalRun], allow_test_tuning: bool = True) -> 
     return out
 
 
+def dataset_overrides(run_dir: Path) -> list[str]:
+    """The ``dataset`` / ``dataset.*`` command-line overrides of a run (``.hydra/overrides.yaml``; [] when absent)."""
+    path = Path(run_dir) / ".hydra" / "overrides.yaml"
+    if not path.is_file():
+        return []
+    import yaml
+
+    items = yaml.safe_load(path.read_text()) or []
+    return [str(o) for o in items if isinstance(o, str) and (o.startswith("dataset=") or o.startswith("dataset."))]
+
+
 def _yaml_number(x: float) -> str:
     if math.isinf(x):
         return ".inf"
@@ -526,14 +538,16 @@ def _yaml_number(x: float) -> str:
 
 def tuned_config_text(
     agent: str, dataset: str, thresholds: Mapping[str, float], source: str = "", split: str = "val",
-    name: str | None = None, settings: str = "", untuned: Sequence[str] = (),
+    name: str | None = None, settings: str = "", untuned: Sequence[str] = (), dataset_args: Sequence[str] = (),
 ) -> str:
     """An ``agent`` group config that extends ``<agent>.yaml`` with the tuned ``d_thresh`` per difficulty,
     to be copied into ``configs/agent/``.
 
     Difficulties without a tuned value keep the base config's threshold. ``name``: the config's name
     (default ``<agent>_tuned_<dataset>``); ``settings``: the runs' distinguishing settings, for the header;
-    ``untuned``: difficulties that were evaluated but where no run stopped (named in the header).
+    ``untuned``: difficulties that were evaluated but where no run stopped (named in the header);
+    ``dataset_args``: the tuning runs' data set overrides (``dataset=sun360_indoor dataset.root=...``), for the
+    header's "Use it" line (``dataset`` is a data set's name, not a config of the ``dataset`` group).
     """
     name = name or f"{agent}_tuned_{dataset}"
     lines = [
@@ -542,7 +556,8 @@ def tuned_config_text(
         *([f"# Tuned for: {settings}"] if settings else []),
         *([f"# Not tuned (no run stopped in any episode; the base config's d_thresh stays): {', '.join(untuned)}"]
           if untuned else []),
-        f"# Use it: cp {name}.yaml configs/agent/ && python tools/eval.py agent={name} dataset={dataset}",
+        f"# Use it: cp {name}.yaml configs/agent/ && python tools/eval.py agent={name} "
+        + (" ".join(dataset_args) if dataset_args else f"<the data set options of the runs that made {dataset}>"),
         "defaults:",
         f"  - {agent}",
         "  - _self_",

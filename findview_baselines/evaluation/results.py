@@ -42,6 +42,7 @@ from findview_baselines.evaluation.collect import (
     threshold_table,
     threshold_value,
     tuned_config_text,
+    dataset_overrides,
     tuned_thresholds,
 )
 from findview_baselines.evaluation.run_info import (
@@ -79,6 +80,7 @@ __all__ = [
     "threshold_table",
     "best_thresholds",
     "tuned_config_text",
+    "dataset_overrides",
     "CLEAR",
     "IGNORED_KEYS",
     "LEARNED_AGENT_KEYS",
