@@ -521,12 +521,12 @@ def best_thresholds(runs: Sequence[EvalRun], allow_test_tuning: bool = True) -> 
 
 def dataset_overrides(run_dir: Path) -> list[str]:
     """The ``dataset`` / ``dataset.*`` command-line overrides of a run (``.hydra/overrides.yaml``; [] when absent)."""
+    from omegaconf import OmegaConf
+
     path = Path(run_dir) / ".hydra" / "overrides.yaml"
     if not path.is_file():
         return []
-    import yaml
-
-    items = yaml.safe_load(path.read_text()) or []
+    items = OmegaConf.to_container(OmegaConf.load(path)) or []
     return [str(o) for o in items if isinstance(o, str) and (o.startswith("dataset=") or o.startswith("dataset."))]
 
 

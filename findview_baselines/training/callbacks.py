@@ -197,11 +197,14 @@ class ValidationCallback(Callback):
             return  # not rank 0
         ctx.last_val = self.validate(ctx)
         mean_eps = float(ctx.last_val["all"]["eps"])
-        if self.keep_all:
-            save_checkpoint(ctx.best_path.with_name(f"val_u{update:05d}.pth"), ctx.checkpoint(with_trainer=False))
-        if ctx.best_val_eps is None or mean_eps < ctx.best_val_eps:
+        is_best = ctx.best_val_eps is None or mean_eps < ctx.best_val_eps
+        if is_best:
             ctx.best_val_eps = mean_eps
-            save_checkpoint(ctx.best_path, ctx.checkpoint(with_trainer=False))
+        weights = ctx.checkpoint(with_trainer=False) if is_best or self.keep_all else None
+        if self.keep_all:
+            save_checkpoint(ctx.best_path.with_name(f"val_u{update:05d}.pth"), weights)
+        if is_best:
+            save_checkpoint(ctx.best_path, weights)
             log.info("new best val eps %.3f at update %d -> %s", mean_eps, update, ctx.best_path)
         if self.tb is not None:
             self.tb.add_validation(ctx.algo.env_steps, ctx.last_val, ctx.best_val_eps)
