@@ -214,6 +214,29 @@ def test_pan_prior_always_reaches_the_target_without_looping() -> None:
     assert torch.equal(moves[overlapping], l1_distance(p0, y0, tp, ty)[overlapping])
 
 
+def test_pan_prior_pitch_band_moves_the_pitch_first_when_the_target_is_far_above_or_below() -> None:
+    # FoV 60, target 150 to the left: 40 above -> UP with band 0.5 (40 > 30), RIGHT with band 1 (40 <= 60);
+    # 25 below -> RIGHT either way (25 <= 30); 40 above but overlapping (20 left) -> the oracle's move
+    args = (t(0, 0, 0), t(0, 0, 0), t(40, -25, 40), t(-150, -150, -20))
+    assert pan_actions(*args, fov=60).tolist() == [RIGHT, RIGHT, UP]
+    assert pan_actions(*args, fov=60, pitch_band=0.5).tolist() == [UP, RIGHT, UP]
+    assert pan_action_mask(*args, fov=60, pitch_band=0.5).int().tolist() == [
+        [1, 0, 0, 0, 0], [0, 0, 0, 1, 0], [1, 0, 1, 0, 0]]
+    # band 0: match the pitch exactly before panning (the sweep's move order, with a one-move set)
+    assert pan_actions(t(0), t(0), t(-1), t(-150), fov=60, pitch_band=0.0).tolist() == [DOWN]
+    with pytest.raises(ValueError, match="pitch_band"):
+        pan_actions(*args, fov=60, pitch_band=1.5)
+    # it always arrives: a walk from random starts ends on the target, the pan starting within 30 degrees
+    g = torch.Generator().manual_seed(5)
+    n = 300
+    p0, tp = torch.randint(-60, 61, (n,), generator=g), torch.randint(-60, 61, (n,), generator=g)
+    y0, ty = torch.randint(-179, 181, (n,), generator=g), torch.randint(-179, 181, (n,), generator=g)
+    moves, pitch, yaw = walk(lambda *s: pan_actions(*s, fov=60, pitch_band=0.5), p0, y0, tp, ty, 900)
+    assert (moves >= 0).all() and torch.equal(pitch, tp) and torch.equal(yaw, ty)
+    # pitch moves lie on a shortest path: at most one right turn short of an overlap more than the L1 distance
+    assert (moves <= l1_distance(p0, y0, tp, ty) + 360 - 2 * 60 + 1 + 60).all()
+
+
 def test_labels_from_an_env_object() -> None:
     env = SimpleNamespace(
         pitch=t(0, 0), yaw=t(0, 0), target_pitch=t(0, 0), target_yaw=t(-150, -20), step_deg=1,
@@ -240,6 +263,8 @@ def test_config_validation_and_beta_schedule() -> None:
         DAggerConfig(beta_end=1.5)
     with pytest.raises(ValueError, match="dagger.search_prior"):
         DAggerConfig(search_prior="spiral")
+    with pytest.raises(ValueError, match="dagger.search_pitch_band"):
+        DAggerConfig(search_pitch_band=-0.1)
     with pytest.raises(ValueError, match="dagger.labels"):
         DAggerConfig(labels="soft")
     cfg = DAggerConfig(beta_start=1.0, beta_end=0.2, beta_decay_updates=4)

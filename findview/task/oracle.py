@@ -32,7 +32,12 @@ Conventions (docs/TASK.md): ``+pitch`` looks up (action ``UP``), ``+yaw`` pans r
   pan can reach an overlapping view). A learner cannot read the target's pitch from a view that shares
   nothing with it, so the sweep's "match the pitch first" labels ask it to guess, and a greedy learner
   that guesses ends in ``UP``/``DOWN`` two-cycles; "pan right until the target shows up" asks only
-  "do the views overlap?". With pitches in ``[-60, 60]`` and ``fov >= 60`` the pitch branch never fires.
+  "do the views overlap?". ``pitch_band`` (a fraction of ``fov``, default 1) sets where the pitch move starts:
+  with ``pitch_band = 0.5`` the prior moves the pitch towards the target while ``|dpitch| > fov / 2`` and pans
+  only from there, so a pan passes the target with at least half of its height in view instead of a thin
+  strip (at FoV 60 a target 50 degrees above shares 10 degrees with the panning view); the learner then has
+  to read "is the target above or below?" from the two images (ceiling, floor, sky, horizon), and every such
+  pitch move lies on a shortest path.
   The two regions do not trap a learner at their border: at ``dyaw = -fov`` the oracle moves ``LEFT``
   (into the overlap), one degree further the pan moves ``RIGHT`` (away from it, round the sphere).
 """
@@ -191,10 +196,18 @@ def sweep_actions(
     return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
 
 
-def _pan_search(dp: torch.Tensor, fov: float) -> torch.Tensor:
-    """(N,) long: the pan prior's move where the views do not overlap (pitch move while ``|dp| > fov``)."""
+def _check_band(pitch_band: float) -> float:
+    band = float(pitch_band)
+    if not 0.0 <= band <= 1.0:
+        raise ValueError(f"pitch_band must be in [0, 1] (a fraction of the FoV), got {pitch_band!r}")
+    return band
+
+
+def _pan_search(dp: torch.Tensor, fov: float, pitch_band: float = 1.0) -> torch.Tensor:
+    """(N,) long: the pan prior's move where the views do not overlap (pitch move while
+    ``|dp| > pitch_band * fov``, else ``RIGHT``)."""
     pitch_move = torch.where(dp > 0, int(Action.UP), int(Action.DOWN))
-    return torch.where(dp.abs() > fov, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
+    return torch.where(dp.abs() > _check_band(pitch_band) * fov, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
 
 
 def pan_actions(
@@ -205,12 +218,15 @@ def pan_actions(
     fov: float,
     step_deg: int = 1,
     order: str = "pitch_first",
+    pitch_band: float = 1.0,
 ) -> torch.Tensor:
     """Oracle actions where the views overlap; elsewhere pan ``RIGHT`` (N,) long (a pitch move towards the
-    target only while ``|dpitch| > fov``). See the module docstring ("pan search prior"); ``fov`` in degrees."""
+    target only while ``|dpitch| > pitch_band * fov``). See the module docstring ("pan search prior"); ``fov``
+    in degrees, ``pitch_band`` a fraction of it in ``[0, 1]``."""
     oracle = oracle_actions(pitch, yaw, target_pitch, target_yaw, step_deg, order)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
-    return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, _pan_search(dp, fov))
+    search = _pan_search(dp, fov, pitch_band)
+    return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
 
 
 def pan_action_mask(
@@ -220,11 +236,13 @@ def pan_action_mask(
     target_yaw: torch.Tensor,
     fov: float,
     step_deg: int = 1,
+    pitch_band: float = 1.0,
 ) -> torch.Tensor:
-    """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the pan prior's one move."""
+    """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the pan prior's one move
+    (``pitch_band`` as in :func:`pan_actions`)."""
     optimal = optimal_action_mask(pitch, yaw, target_pitch, target_yaw, step_deg)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
-    search = torch.nn.functional.one_hot(_pan_search(dp, fov), len(Action)).bool()
+    search = torch.nn.functional.one_hot(_pan_search(dp, fov, pitch_band), len(Action)).bool()
     overlap = overlap_mask(pitch, yaw, target_pitch, target_yaw, fov)
     return torch.where(overlap[:, None], optimal, search)
 
@@ -237,29 +255,33 @@ def _env_rotations(env: Any, search: str) -> tuple[torch.Tensor, torch.Tensor, t
     return env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step
 
 
-def oracle_actions_for(env: Any, order: str = "pitch_first", search: str = "oracle") -> torch.Tensor:
+def oracle_actions_for(
+    env: Any, order: str = "pitch_first", search: str = "oracle", pitch_band: float = 1.0
+) -> torch.Tensor:
     """Labels for the environments' current observations, (N,) long on ``env.device``.
 
     Reads ``env.pitch, env.yaw, env.target_pitch, env.target_yaw`` (and ``env.step_deg``, ``env.sim.fov``).
     ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`; ``search="pan"``:
-    :func:`pan_actions`. Call it before ``env.step`` to label the observation the policy acts on.
+    :func:`pan_actions` (with ``pitch_band``). Call it before ``env.step`` to label the observation the policy acts on.
     """
     pitch, yaw, tp, ty, fov, step = _env_rotations(env, search)
     if search == "oracle":
         return oracle_actions(pitch, yaw, tp, ty, step, order)
-    prior = sweep_actions if search == "sweep" else pan_actions
-    return prior(pitch, yaw, tp, ty, fov, step, order)
+    if search == "sweep":
+        return sweep_actions(pitch, yaw, tp, ty, fov, step, order)
+    return pan_actions(pitch, yaw, tp, ty, fov, step, order, pitch_band)
 
 
-def optimal_action_mask_for(env: Any, search: str = "oracle") -> torch.Tensor:
+def optimal_action_mask_for(env: Any, search: str = "oracle", pitch_band: float = 1.0) -> torch.Tensor:
     """(N, 5) bool action sets of the environments' current observations (``search`` as in
     :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`,
-    ``pan`` -> :func:`pan_action_mask`)."""
+    ``pan`` -> :func:`pan_action_mask` with ``pitch_band``)."""
     pitch, yaw, tp, ty, fov, step = _env_rotations(env, search)
     if search == "oracle":
         return optimal_action_mask(pitch, yaw, tp, ty, step)
-    prior = sweep_action_mask if search == "sweep" else pan_action_mask
-    return prior(pitch, yaw, tp, ty, fov, step)
+    if search == "sweep":
+        return sweep_action_mask(pitch, yaw, tp, ty, fov, step)
+    return pan_action_mask(pitch, yaw, tp, ty, fov, step, pitch_band)
 
 
 def rotation_targets(

@@ -25,7 +25,9 @@ axis it sees best first instead of having to tell which remaining distance the o
 Search prior (``search_prior``): ``"oracle"`` labels every state with the true shortest path, also where the view
 and the target share nothing, so a learner must guess the direction there; ``"pan"`` (default) replaces
 the labels of no-overlap states by "pan right until the views overlap" (``findview.task.oracle.pan_actions``),
-which a learner can follow from images alone (it only has to tell whether the views overlap);
+which a learner can follow from images alone (it only has to tell whether the views overlap;
+``search_pitch_band`` < 1 first moves the pitch to within that fraction of a FoV of the target's, which asks the
+learner to tell from the images whether the target lies above or below);
 ``"sweep"`` first matches the pitch, then pans right (``sweep_actions``); a learner cannot read the
 target's pitch from a view that shares nothing with it and a greedy one ends in ``UP``/``DOWN`` two-cycles.
 
@@ -215,9 +217,9 @@ class DAggerTrainer(Trainer):
             masks[t].copy_(self.masks)
             if t % cfg.seq_len == 0:
                 hiddens[t // cfg.seq_len].copy_(self.hidden * self.masks[:, None])
-            oracle = oracle_actions_for(env, cfg.order, cfg.search_prior).to(dev)
+            oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band).to(dev)
             if cfg.labels == "set":
-                label = optimal_action_mask_for(env, cfg.search_prior).to(dev)
+                label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band).to(dev)
             else:
                 label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
             labels[t].copy_(label)

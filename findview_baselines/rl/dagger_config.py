@@ -53,6 +53,10 @@ class DAggerConfig:
     search_prior: str = "pan"
     """Labels where view and target do not overlap: ``pan`` (pan right until they do), ``sweep`` (match
     pitch, then pan right) or ``oracle`` (the true shortest path, which a learner cannot see)."""
+    search_pitch_band: float = 1.0
+    """``pan`` prior: where the views do not overlap, move the pitch towards the target while ``|dpitch|`` exceeds
+    this fraction of the FoV, and pan right from there (1: pan at any pitch the views can overlap at; 0.5: pan
+    only within half a FoV of the target's pitch, so the pan meets the target with at least half of it in view)."""
     order: str = "pitch_first"
     """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
     ``pitch_first``, ``yaw_first`` or ``larger_first``."""
@@ -98,6 +102,10 @@ class DAggerConfig:
             raise ConfigError(f"trainer.dagger.aux_coef must be 0 (off) or positive, got {self.aux_coef!r}")
         if self.search_prior not in SEARCH_PRIORS:
             raise ConfigError(f"trainer.dagger.search_prior must be one of {SEARCH_PRIORS}, got {self.search_prior!r}")
+        if not 0.0 <= self.search_pitch_band <= 1.0:
+            raise ConfigError(
+                f"trainer.dagger.search_pitch_band must be in [0, 1] (a fraction of the FoV), got {self.search_pitch_band!r}"
+            )
         if self.labels not in LABEL_MODES:
             raise ConfigError(f"trainer.dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
         if self.order not in ORDERS:
