@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import glob
 import os
 import re
@@ -370,12 +371,19 @@ def check_tensorboard(cmd: str, cwd: Path) -> Optional[str]:
 
 def _train_algorithm(cmd: str, script: str) -> str:
     """``trainer.algorithm`` of a documented ``tools/train.py`` command (``ppo`` when it does not compose:
-    its run then shows the problem)."""
+    its run then shows the problem). Only the overrides that can choose it are composed (``trainer=``,
+    ``trainer.algorithm=``, ``[+]experiment=``), once per distinct set: the docs hold many train commands."""
+    args = [a for a in shlex.split(cmd.split(script, 1)[1]) if not a.startswith("-") and "=" in a]
+    chooses = tuple(a for a in args if a.split("=", 1)[0].lstrip("+~") in ("trainer", "trainer.algorithm", "experiment"))
+    return _compose_algorithm(chooses)
+
+
+@functools.lru_cache(maxsize=None)
+def _compose_algorithm(args: tuple[str, ...]) -> str:
     from findview_baselines.cli import compose_config
 
-    args = [a for a in shlex.split(cmd.split(script, 1)[1]) if not a.startswith("-") and "=" in a]
     try:
-        return str(compose_config("train", args).trainer.algorithm)
+        return str(compose_config("train", list(args)).trainer.algorithm)
     except Exception:
         return "ppo"
 
