@@ -647,7 +647,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the agent averages down to): 256 gives a 64x64 learned agent the targets the rule-based "
                         "agents see at FoV 90 (a corruption's kernel is in pixels); default: the checkpoint's own size")
     p.add_argument("--override", action="append", metavar="KEY=VALUE",
-                   help="an extra tools/eval.py override for every cell (repeatable), e.g. --override dataset.hard_rule=and")
+                   help="an extra tools/eval.py override for every cell (repeatable), e.g. --override dataset.hard_rule=and; "
+                        "dataset.* overrides also go to the data set step (tools/make_dataset.py)")
     p.add_argument("--out", default="outputs/robustness", help="output folder")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel tools/eval.py jobs")
     p.add_argument("--calibration-episodes", type=int, default=2,
@@ -706,7 +707,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(args: argparse.Namespace, agents: Sequence[AgentSpec], plan: list[Cell], todo: list[Cell], done: list[Cell],
          fingerprints: Mapping[str, str], runner: Runner, t_start: float) -> int:
     out = Path(args.out).resolve()
-    make_cmd = [sys.executable, str(MAKE_DATASET_TOOL), *dataset_overrides(args),
+    # the data set step gets the dataset.* overrides too (the cells' episode files must be made with them)
+    dataset_extra = [o for o in (args.override or []) if o.split("=", 1)[0].lstrip("+~").startswith("dataset.")]
+    make_cmd = [sys.executable, str(MAKE_DATASET_TOOL), *dataset_overrides(args), *dataset_extra,
                 f"dataset.episode_fovs=[{','.join(fov_tag(f) for f in args.fovs)}]", f"sim.fov={fov_tag(args.fovs[0])}",
                 "force=false", "progress=false"]
     calib_file = out / "calibration" / "calibration.json"

@@ -97,6 +97,19 @@ def test_robustness_benchmark_end_to_end(tmp_path, capsys, monkeypatch):
     assert not any(robustness.is_done(c, {}) for c in plan)
 
 
+def test_dataset_overrides_reach_the_data_set_step(tmp_path, capsys, monkeypatch):
+    """An ``--override dataset.KEY=V`` changes the episodes, so tools/make_dataset.py gets it as well as every
+    cell; other overrides (agent.*) go to the cells only."""
+    monkeypatch.chdir(REPO)
+    stdout = bench(capsys, tmp_path / "bench", "--dry-run", "--override", "dataset.hard_rule=and",
+                   "--override", "agent.threads=1")
+    lines = stdout.splitlines()
+    step = lines[lines.index("dry run: nothing is run. The data set step:") + 1]
+    assert "make_dataset.py" in step and "dataset.hard_rule=and" in step and "agent.threads" not in step
+    cells = [line for line in lines if line.strip().startswith("run ")]
+    assert cells and all("dataset.hard_rule=and" in c and "agent.threads=1" in c for c in cells)
+
+
 def test_user_agent_threads_are_not_overridden():
     """``--override agent.threads=1`` reaches every cell's command; the tool's own thread count (appended
     after the user's overrides, where it would win) is only added when the user set none."""
