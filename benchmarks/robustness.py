@@ -481,6 +481,33 @@ def estimate(cells: Sequence[Cell], rates: Mapping[str, Rate], episodes: Mapping
     return max(total / j, longest), max(total_max / j, longest_max), lines
 
 
+def finished_cell_seconds(cells: Sequence[Cell]) -> dict[str, list[float]]:
+    """``{agent key: [wall seconds of each finished cell]}`` from the cells' ``robustness.log`` (its last line,
+    ``# exit 0, S s``): what corrupted cells really took, where the calibration measures clean episodes only."""
+    out: dict[str, list[float]] = {}
+    for c in cells:
+        try:
+            last = (c.run_dir / "robustness.log").read_text().rstrip().splitlines()[-1]
+        except (OSError, IndexError):
+            continue
+        m = re.fullmatch(r"# exit 0, ([0-9.]+) s", last.strip())
+        if m:
+            out.setdefault(c.agent.key, []).append(float(m.group(1)))
+    return out
+
+
+def estimate_from_finished(todo: Sequence[Cell], finished: Mapping[str, list[float]], jobs: int) -> str | None:
+    """A line with the expected time of ``todo`` from the mean wall time of the same agents' finished cells
+    (``None`` when an agent to run has none finished)."""
+    if not todo or any(c.agent.key not in finished for c in todo):
+        return None
+    total = sum(sum(finished[c.agent.key]) / len(finished[c.agent.key]) for c in todo)
+    done = sum(len(finished[k]) for k in {c.agent.key for c in todo})
+    j = max(1, min(jobs, len(todo)))
+    return (f"expected from the {done} finished cells of these agents (their mean wall time per cell, corrupted "
+            f"targets included): {fmt_duration(total / j)} on {j} jobs")
+
+
 # ------------------------------------------------------------------------------------ tables, plots
 def _finished_runs(cells: Sequence[Cell], warn: Any) -> list[Any]:
     from findview_baselines.evaluation.results import find_runs
@@ -761,6 +788,9 @@ def _run(args: argparse.Namespace, agents: Sequence[AgentSpec], plan: list[Cell]
               f"(clean-episode rates; at most {fmt_duration(most)} if every episode runs to T = {args.T})")
         if lines:
             print("\n".join(lines), flush=True)
+        from_finished = estimate_from_finished(todo, finished_cell_seconds(done), jobs)
+        if from_finished:
+            print(from_finished, flush=True)
     t_cells = time.monotonic()
     failed: list[tuple[Cell, int]] = []
     if todo:

@@ -110,6 +110,22 @@ def test_dataset_overrides_reach_the_data_set_step(tmp_path, capsys, monkeypatch
     assert cells and all("dataset.hard_rule=and" in c and "agent.threads=1" in c for c in cells)
 
 
+def test_expected_time_from_the_finished_cells(tmp_path):
+    """The finished cells' logged wall times (``# exit 0, S s``) estimate the rest; a failed cell, a cell without a
+    log and an agent with no finished cell give nothing to go on."""
+    cells = plan(*ARGS, "--agents", "random", "orb", "--out", str(tmp_path))
+    random_cells = [c for c in cells if c.agent.key == "random"]
+    for c, text in zip(random_cells, ["# exit 0, 100.0 s", "# exit 0, 300.0 s", "# exit 1, 5.0 s"]):
+        c.run_dir.mkdir(parents=True)
+        (c.run_dir / "robustness.log").write_text(f"$ tools/eval.py ...\noutput\n{text}\n")
+    assert robustness.finished_cell_seconds(cells) == {"random": [100.0, 300.0]}
+    todo = random_cells[3:]  # two cells left: 2 x the mean 200 s, on 2 jobs -> 200 s
+    line = robustness.estimate_from_finished(todo, robustness.finished_cell_seconds(cells), jobs=2)
+    assert line is not None and "2 finished cells" in line and robustness.fmt_duration(200.0) in line
+    orb_todo = [c for c in cells if c.agent.key == "orb"]
+    assert robustness.estimate_from_finished(orb_todo, robustness.finished_cell_seconds(cells), jobs=2) is None
+
+
 def test_user_agent_threads_are_not_overridden():
     """``--override agent.threads=1`` reaches every cell's command; the tool's own thread count (appended
     after the user's overrides, where it would win) is only added when the user set none."""
