@@ -251,6 +251,11 @@ class PPOAgentConfig:
     revisit_row_stride: int = 0
     """With the search memory on: once the agent has looked around a full turn near its row, it moves to the next
     search row, this many 1-step moves above / below its start (alternately: +s, -s, +2s, -2s, ...). 0 = off."""
+    memory_inputs: bool = False
+    """The network reads its search memory (needs ``revisit_penalty > 0``): per step, whether it has looked around
+    a full turn near its current row, how much of it, whether the rows above / below have been, and its pitch
+    offset from the start (findview_baselines/rl/search_memory.py, ``memory_features``). With DAgger's ``pan``
+    search prior the labels then leave a finished row towards the target. Part of the checkpoint signature."""
     refine_stop: bool = False
     """At validation / evaluation: check each stop of the policy by phase correlation of view and target, and when
     the target is measured at least half a degree away move towards it (one degree per step, at most
@@ -292,6 +297,8 @@ class PPOAgentConfig:
               "null or a probability in (0, 1]")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
+        check(not self.memory_inputs or self.revisit_penalty > 0, "agent.revisit_penalty", self.revisit_penalty,
+              "a positive number of logit units with agent.memory_inputs=true (the network reads the search memory)")
 
 
 #: keys that moved: the old spelling -> the new key (a one-line message names the new one)

@@ -33,6 +33,7 @@ from findview_baselines.rl.dagger import DAggerConfig, DAggerTrainer, SequenceBu
 from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.ppo_trainer import UpdateAbandoned
 from findview_baselines.rl.scheduler import DifficultyScheduler
+from findview_baselines.rl.search_memory import MEMORY_FEATURES
 
 UP, DOWN, LEFT, RIGHT, STOP = (int(a) for a in (Action.UP, Action.DOWN, Action.LEFT, Action.RIGHT, Action.STOP))
 
@@ -533,3 +534,59 @@ def test_cached_fixed_features_train_the_same_weights(panoramas) -> None:
     resumed = DAggerTrainer(env, policy, cached.cfg, total_updates=6)
     resumed.load_state_dict(state)
     assert torch.allclose(resumed.buffer.fixed[:n], cached.buffer.fixed[:n], atol=1e-6)
+
+
+def memory_run(images, updates: int, state: dict | None = None, cover_cells: int = 6) -> DAggerTrainer:
+    """A DAgger run of a policy that reads its search memory, on hard starts only, with the oracle executing every
+    step and a memory that calls a row done after ``cover_cells`` yaw cells (a full turn would take 360 steps)."""
+    torch.manual_seed(0)
+    env = sampled_env(images, 3, 32, 30, 120, seed=13)
+    env.source.level = 3
+    policy = Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2, memory_inputs=MEMORY_FEATURES)
+    cfg = DAggerConfig(rollout_steps=16, seq_len=4, buffer_size=400, batch_sequences=3, epochs=2.0, beta_end=1.0,
+                       labels="set", search_prior="pan", search_weight=0.25)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=6, revisit_penalty=2.0)
+    trainer.revisits.cover_cells = cover_cells
+    if state is None:
+        trainer.start()
+    else:
+        trainer.load_state_dict(state)
+    for _ in range(updates):
+        trainer.train_update()
+    return trainer
+
+
+def test_memory_inputs_reach_the_buffer_the_labels_and_the_resume_state(panoramas) -> None:
+    """With memory inputs, the buffer keeps the memory's features of every step; where the memory calls the row
+    done and the views do not overlap (an oracle walk pans right for a while on hard starts), the label leaves the
+    row by a lone pitch move at full weight; a row that is not done keeps the down-weighted lone RIGHT; and 4 updates
+    equal 2 + save + load + 2."""
+    with pytest.raises(ValueError, match="needs revisit_penalty > 0"):
+        DAggerTrainer(sampled_env(panoramas, 3, 32, 30, 120, seed=13),
+                      Policy(32, 32, variant="direct", hidden_size=16, memory_inputs=MEMORY_FEATURES), DAggerConfig(), 6)
+    trainer = memory_run(panoramas, 4)
+    n = len(trainer.buffer)
+    memory = trainer.buffer.memory[:n].flatten(0, 1)
+    labels = trainer.buffer.labels[:n].flatten(0, 1)
+    weights = trainer.buffer.weights[:n].flatten()
+    assert memory.shape == (n * 4, MEMORY_FEATURES)
+    done = memory[:, 0] == 1.0
+    lone = labels.sum(dim=1) == 1
+    pitch_move = lone & (labels[:, Action.UP] | labels[:, Action.DOWN])
+    right = lone & labels[:, Action.RIGHT]
+    assert bool((done & pitch_move).any())  # rows left after the memory called them done
+    assert not bool((weights[done] == 0.25).any())  # leaving a row weighs 1
+    assert bool((~done & right & (weights == 0.25)).any()) and not bool((done & right & (weights == 0.25)).any())
+    # the memory's features are in [0, 1] except the signed pitch offset
+    assert bool(((memory[:, :4] >= 0) & (memory[:, :4] <= 1)).all())
+    # exact resume, the memory's features saved with the buffer
+    first = memory_run(panoramas, 2)
+    state = first.state_dict()
+    assert state["buffer"]["memory"].shape[-1] == MEMORY_FEATURES
+    blob = io.BytesIO()
+    torch.save(state, blob)
+    blob.seek(0)
+    resumed = memory_run(panoramas, 2, state=torch.load(blob, weights_only=True))
+    for (name, a), b in zip(trainer.policy.state_dict().items(), resumed.policy.state_dict().values()):
+        assert torch.equal(a, b), name
+    assert torch.equal(trainer.buffer.memory[:n], resumed.buffer.memory[:n])

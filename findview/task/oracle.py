@@ -38,6 +38,12 @@ Conventions (docs/TASK.md): ``+pitch`` looks up (action ``UP``), ``+yaw`` pans r
   strip (at FoV 60 a target 50 degrees above shares 10 degrees with the panning view); the learner then has
   to read "is the target above or below?" from the two images (ceiling, floor, sky, horizon), and every such
   pitch move lies on a shortest path.
+  **Row done** (``row_done``, per environment): the searcher's own record that it has looked around its current row
+  without finding the target (e.g. a full turn in its dead-reckoned search memory), which happens when it pans past a
+  target that shares only a thin strip with its view. Where it is set, the prior moves the pitch towards the target
+  instead of panning on (every such move lies on a shortest path); a learner that sees the same record can learn
+  "leave a finished row, towards where the target's content suggests", and from the record of the rows it has
+  already looked around, "back the other way" when it guessed wrong.
   The two regions do not trap a learner at their border: at ``dyaw = -fov`` the oracle moves ``LEFT``
   (into the overlap), one degree further the pan moves ``RIGHT`` (away from it, round the sphere).
 """
@@ -203,11 +209,16 @@ def _check_band(pitch_band: float) -> float:
     return band
 
 
-def _pan_search(dp: torch.Tensor, fov: float, pitch_band: float = 1.0) -> torch.Tensor:
+def _pan_search(
+    dp: torch.Tensor, fov: float, pitch_band: float = 1.0, row_done: torch.Tensor | None = None
+) -> torch.Tensor:
     """(N,) long: the pan prior's move where the views do not overlap (pitch move while
-    ``|dp| > pitch_band * fov``, else ``RIGHT``)."""
+    ``|dp| > pitch_band * fov`` or, where ``row_done`` (N,) bool is true, while ``dp != 0``; else ``RIGHT``)."""
     pitch_move = torch.where(dp > 0, int(Action.UP), int(Action.DOWN))
-    return torch.where(dp.abs() > _check_band(pitch_band) * fov, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
+    move_pitch = dp.abs() > _check_band(pitch_band) * fov
+    if row_done is not None:
+        move_pitch = move_pitch | (row_done.to(dp.device).bool() & (dp != 0))
+    return torch.where(move_pitch, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
 
 
 def pan_actions(
@@ -219,13 +230,16 @@ def pan_actions(
     step_deg: int = 1,
     order: str = "pitch_first",
     pitch_band: float = 1.0,
+    row_done: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Oracle actions where the views overlap; elsewhere pan ``RIGHT`` (N,) long (a pitch move towards the
     target only while ``|dpitch| > pitch_band * fov``). See the module docstring ("pan search prior"); ``fov``
-    in degrees, ``pitch_band`` a fraction of it in ``[0, 1]``."""
+    in degrees, ``pitch_band`` a fraction of it in ``[0, 1]``. ``row_done`` (N,) bool, the searcher's own
+    record that it has looked around its current row (e.g. a dead-reckoned search memory): where it is true
+    the prior moves the pitch towards the target instead of panning on (module docstring, "row done")."""
     oracle = oracle_actions(pitch, yaw, target_pitch, target_yaw, step_deg, order)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
-    search = _pan_search(dp, fov, pitch_band)
+    search = _pan_search(dp, fov, pitch_band, row_done)
     return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
 
 
@@ -237,51 +251,61 @@ def pan_action_mask(
     fov: float,
     step_deg: int = 1,
     pitch_band: float = 1.0,
+    row_done: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the pan prior's one move
-    (``pitch_band`` as in :func:`pan_actions`)."""
+    (``pitch_band`` and ``row_done`` as in :func:`pan_actions`)."""
     optimal = optimal_action_mask(pitch, yaw, target_pitch, target_yaw, step_deg)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
-    search = torch.nn.functional.one_hot(_pan_search(dp, fov, pitch_band), len(Action)).bool()
+    search = torch.nn.functional.one_hot(_pan_search(dp, fov, pitch_band, row_done), len(Action)).bool()
     overlap = overlap_mask(pitch, yaw, target_pitch, target_yaw, fov)
     return torch.where(overlap[:, None], optimal, search)
 
 
-def _env_rotations(env: Any, search: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float, int]:
-    """``(pitch, yaw, target_pitch, target_yaw, fov, step_deg)`` of ``env`` after checking ``search``."""
+def _env_rotations(
+    env: Any, search: str, row_done: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float, int]:
+    """``(pitch, yaw, target_pitch, target_yaw, fov, step_deg)`` of ``env`` after checking ``search`` (and that
+    ``row_done`` comes only with the ``pan`` prior)."""
     if search not in SEARCH_PRIORS:
         raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
+    if row_done is not None and search != "pan":
+        raise ValueError(f"row_done (the searcher's memory) shapes the 'pan' search prior only, got search={search!r}")
     step = int(getattr(env, "step_deg", 1))
     return env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step
 
 
 def oracle_actions_for(
-    env: Any, order: str = "pitch_first", search: str = "oracle", pitch_band: float = 1.0
+    env: Any, order: str = "pitch_first", search: str = "oracle", pitch_band: float = 1.0,
+    row_done: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Labels for the environments' current observations, (N,) long on ``env.device``.
 
     Reads ``env.pitch, env.yaw, env.target_pitch, env.target_yaw`` (and ``env.step_deg``, ``env.sim.fov``).
     ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`; ``search="pan"``:
-    :func:`pan_actions` (with ``pitch_band``). Call it before ``env.step`` to label the observation the policy acts on.
+    :func:`pan_actions` (with ``pitch_band`` and ``row_done``; the other priors refuse ``row_done``). Call it before
+    ``env.step`` to label the observation the policy acts on.
     """
-    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search)
+    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done)
     if search == "oracle":
         return oracle_actions(pitch, yaw, tp, ty, step, order)
     if search == "sweep":
         return sweep_actions(pitch, yaw, tp, ty, fov, step, order)
-    return pan_actions(pitch, yaw, tp, ty, fov, step, order, pitch_band)
+    return pan_actions(pitch, yaw, tp, ty, fov, step, order, pitch_band, row_done)
 
 
-def optimal_action_mask_for(env: Any, search: str = "oracle", pitch_band: float = 1.0) -> torch.Tensor:
+def optimal_action_mask_for(
+    env: Any, search: str = "oracle", pitch_band: float = 1.0, row_done: torch.Tensor | None = None
+) -> torch.Tensor:
     """(N, 5) bool action sets of the environments' current observations (``search`` as in
     :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`,
-    ``pan`` -> :func:`pan_action_mask` with ``pitch_band``)."""
-    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search)
+    ``pan`` -> :func:`pan_action_mask` with ``pitch_band`` and ``row_done``)."""
+    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done)
     if search == "oracle":
         return optimal_action_mask(pitch, yaw, tp, ty, step)
     if search == "sweep":
         return sweep_action_mask(pitch, yaw, tp, ty, fov, step)
-    return pan_action_mask(pitch, yaw, tp, ty, fov, step, pitch_band)
+    return pan_action_mask(pitch, yaw, tp, ty, fov, step, pitch_band, row_done)
 
 
 def rotation_targets(

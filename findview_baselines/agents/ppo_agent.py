@@ -17,6 +17,9 @@
 - ``revisit_penalty > 0`` switches on a search memory (:class:`~findview_baselines.rl.search_memory.RevisitPenalty`):
   each move's logit is lowered by that many logit units per earlier visit of the pose it leads to (poses
   dead-reckoned from the agent's own actions), which breaks left/right loops. 0 (the default) is the plain policy.
+  A network built with ``memory_inputs`` (in its checkpoint signature) also reads that memory's features each step
+  (:meth:`~findview_baselines.rl.search_memory.RevisitPenalty.memory_features`: has it looked around its row?), and
+  needs the memory on and the views' ``fov``.
 
 Checkpoints are read with ``torch.load(..., weights_only=True)``; the layout is the one written by the
 trainer (``{"signature": {...}, "policy": state_dict, ...}``, see ``findview_baselines.rl.checkpoint``).
@@ -39,7 +42,7 @@ from findview.runtime import scoped
 from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.observations import area_downsample, downsample_factor
-from findview_baselines.rl.search_memory import make_revisit_penalty
+from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
 
 if TYPE_CHECKING:
     from findview_baselines.config import PPOAgentConfig
@@ -74,6 +77,8 @@ class PPOAgent(Agent):
             policy's stops (``None``: the policy's stops stand).
         stop_prob: STOP whenever the policy gives STOP at least this probability, even when a move has more
             (``None``: the argmax, or the sample, decides).
+        fov: the views' horizontal field of view, degrees; required when the policy reads its search memory
+            (``memory_inputs``: the memory's row band is half a FoV, :func:`~findview_baselines.rl.search_memory.memory_band`).
     """
 
     name = "ppo"
@@ -89,6 +94,7 @@ class PPOAgent(Agent):
         revisit_row_stride: int = 0,
         refiner: StopRefiner | None = None,
         stop_prob: float | None = None,
+        fov: float | None = None,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -102,6 +108,14 @@ class PPOAgent(Agent):
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
         self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_row_stride)
         self.refiner = refiner
+        self.memory_band = 0  # rows of the search memory's band, when the network reads the memory
+        if getattr(policy, "memory_inputs", 0):
+            if self.revisits is None or fov is None:
+                raise ValueError(
+                    "this network reads its search memory (memory_inputs in its checkpoint signature): it needs "
+                    f"revisit_penalty > 0 (got {revisit_penalty}) and the views' fov (got {fov})"
+                )
+            self.memory_band = memory_band(float(fov))
 
     # construction --------------------------------------------------------------------------------
     @classmethod
@@ -118,6 +132,7 @@ class PPOAgent(Agent):
         revisit_row_stride: int = 0,
         refiner: StopRefiner | None = None,
         stop_prob: float | None = None,
+        fov: float | None = None,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -145,13 +160,14 @@ class PPOAgent(Agent):
         policy = Policy(
             height=h, width=w, variant=str(sig["variant"]), hidden_size=int(sig["hidden_size"]),
             fine_shifts=int(sig.get("fine_shifts", 0)), fine_scales=int(sig.get("fine_scales", 1)),
+            memory_inputs=int(sig.get("memory_inputs", 0)),
         )
         check_signature(sig, policy.model_signature())
         try:
             policy.load_state_dict(state["policy"])
         except RuntimeError as err:
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
-        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob)
+        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov)
 
     @classmethod
     def from_config(
@@ -175,7 +191,7 @@ class PPOAgent(Agent):
             checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
             refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
-            stop_prob=cfg.stop_prob,
+            stop_prob=cfg.stop_prob, fov=cfg.fov,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -232,13 +248,19 @@ class PPOAgent(Agent):
         t = target.to(self.device) if full else target.to(self.device)[idx]
         h = self.hidden if full else self.hidden[idx]
         masks = torch.ones(len(work), device=self.device)
-        dist, _, h_new = self.policy({"view": v, "target": t}, h, masks)
+        memory = None
+        if self.memory_band:  # the network reads the memory after this step's arrival
+            self.revisits.arrive(idx, v)
+            memory = self.revisits.memory_features(idx, self.memory_band)
+        dist, _, h_new = self.policy({"view": v, "target": t}, h, masks, memory=memory)
         if full:
             self.hidden = h_new
         else:
             self.hidden[idx] = h_new
         logits = dist.logits
-        if self.revisits is not None:
+        if self.memory_band:
+            logits = self.revisits.penalise(idx, logits)
+        elif self.revisits is not None:
             logits = self.revisits.adjust(idx, v, logits)
         if self.sample:
             p_t = dist.probs if self.revisits is None else torch.softmax(logits, dim=-1)

@@ -239,7 +239,8 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     view = {k: int(rendered[k]) for k in ("height", "width") if k in rendered and not given & {"sim", f"sim.{k}"}}
     if "fov" in trained_sim and not given & {"sim", "sim.fov"}:
         view["fov"] = float(trained_sim["fov"])
-    model = {k: sig[k] for k in _MODEL_KEYS if k in sig}
+    model: dict[str, Any] = {k: sig[k] for k in _MODEL_KEYS if k in sig}
+    model["memory_inputs"] = bool(sig.get("memory_inputs", 0))  # a width in the signature, a switch in the config
     search = {k: trained_agent[k] for k in _SEARCH_KEYS if k in trained_agent and f"agent.{k}" not in given}
     agent = replace(cfg.agent if learned else PPOAgentConfig(), **model, **search)
     return replace(cfg, sim=replace(cfg.sim, **view), agent=agent)

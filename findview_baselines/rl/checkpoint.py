@@ -192,7 +192,11 @@ def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool
     except ValueError as err:
         raise CheckpointError(f"{label}: {err} (use a checkpoint of the same agent.variant / agent.hidden_size / "
                               f"view size)") from None
-    policy.load_state_dict(state["policy"])
+    missing, unexpected = policy.load_state_dict(state["policy"], strict=not transfer)
+    grown = tuple(f"{name}." for name in ("memory_proj",))  # parameters of GROWABLE_FIELDS (zero at start)
+    missing = [k for k in missing if not k.startswith(grown)]
+    if missing or unexpected:
+        raise CheckpointError(f"{label}: weights do not fit this model (missing {missing}, unexpected {unexpected})")
     return state
 
 

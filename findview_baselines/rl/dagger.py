@@ -81,7 +81,7 @@ from findview_baselines.rl.dagger_config import LABEL_MODES, DAggerConfig, beta_
 from findview_baselines.rl.dagger_loss import set_nll
 from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.scheduler import DifficultyScheduler
-from findview_baselines.rl.search_memory import make_revisit_penalty
+from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
 from findview_baselines.rl.sequence_buffer import SequenceBuffer
 from findview_baselines.rl.storage import AUX_SIZE
 from findview_baselines.rl.trainer_base import TIMING_KEYS, Trainer, never, no_distribution_validation
@@ -148,6 +148,7 @@ class DAggerTrainer(Trainer):
         self.buffer = SequenceBuffer(
             max(1, cfg.buffer_size // cfg.seq_len), cfg.seq_len, policy.height, policy.width,
             policy.hidden_size, dev, with_aux=self.aux_head is not None, fixed_size=self.fixed_size,
+            memory_size=policy.memory_inputs,
         )
         weights = torch.ones(NUM_ACTIONS, device=dev)
         weights[STOP] = cfg.stop_weight
@@ -162,6 +163,12 @@ class DAggerTrainer(Trainer):
         # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
         self.revisits = make_revisit_penalty(n, dev, revisit_penalty, revisit_row_stride)
         self._all_slots = torch.arange(n, device=dev)
+        # a policy that reads its search memory (memory_inputs): the memory's row band, half a FoV
+        self.memory_band = 0
+        if policy.memory_inputs:
+            if self.revisits is None:
+                raise ValueError("a policy with memory inputs reads the search memory: it needs revisit_penalty > 0")
+            self.memory_band = memory_band(float(env.sim.fov), int(getattr(env, "step_deg", 1)))
 
     # ---------------------------------------------------------------------------------------------
 
@@ -203,6 +210,7 @@ class DAggerTrainer(Trainer):
         aux = torch.empty(T, n, AUX_SIZE, device=dev) if self.aux_head is not None else None
         # the fixed encoder inputs the learner computes to act are the ones the buffer caches
         fixed = torch.empty(T, n, self.fixed_size, device=dev) if self.fixed_size else None
+        memory = torch.empty(T, n, self.policy.memory_inputs, device=dev) if self.memory_band else None
         records: list[dict[str, Any]] = []
         agree = torch.zeros((), device=dev)
         executed_oracle = 0
@@ -217,22 +225,30 @@ class DAggerTrainer(Trainer):
             masks[t].copy_(self.masks)
             if t % cfg.seq_len == 0:
                 hiddens[t // cfg.seq_len].copy_(self.hidden * self.masks[:, None])
-            oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band).to(dev)
+            row_done = None
+            if memory is not None:  # the memory sees this step's arrival before the policy reads it
+                self._memory_arrive()
+                memory[t] = self.revisits.memory_features(self._all_slots, self.memory_band)
+                row_done = memory[t, :, 0] > 0.5 if cfg.search_prior == "pan" else None
+            oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, row_done).to(dev)
             if cfg.labels == "set":
-                label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band).to(dev)
+                label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, row_done).to(dev)
             else:
                 label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
             labels[t].copy_(label)
             if cfg.search_weight != 1.0:
-                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov))
-                weights[t].masked_fill_(~overlap.to(dev), cfg.search_weight)
+                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov)).to(dev)
+                searching = ~overlap if row_done is None else ~overlap & ~row_done  # leaving a finished row: full weight
+                weights[t].masked_fill_(searching, cfg.search_weight)
             if aux is not None:
                 aux[t].copy_(rotation_labels(env).to(dev))
             t0 = time.perf_counter()
             obs = {"view": self.view, "target": self.target}
             if fixed is not None:
                 fixed[t] = self.policy.fixed_features(obs)
-            learner, new_hidden = self._learner_step(obs, None if fixed is None else fixed[t])
+            learner, new_hidden = self._learner_step(
+                obs, None if fixed is None else fixed[t], None if memory is None else memory[t]
+            )
             t1 = time.perf_counter()
             use_oracle = torch.rand(n, generator=self.mix_generator) < beta
             executed_oracle += int(use_oracle.sum())
@@ -254,21 +270,31 @@ class DAggerTrainer(Trainer):
             s = slice(k * L, (k + 1) * L)
             self.buffer.add(
                 views[s], targets[s], hiddens[k], masks[s], labels[s], None if aux is None else aux[s], weights[s],
-                None if fixed is None else fixed[s],
+                None if fixed is None else fixed[s], None if memory is None else memory[s],
             )
         self.env_steps += distributed.global_steps(T * n)  # all ranks under torchrun
         self._add_rollout_timings(t_forward, t_env, time.perf_counter() - start)
         stats = {"oracle_share": executed_oracle / (T * n), "rollout_agreement": float(agree) / (T * n)}
         return records, stats
 
+    def _memory_arrive(self) -> None:
+        """The search memory: slots whose episode starts now forget, then every slot arrives at its pose."""
+        starts = torch.nonzero(self.masks == 0).flatten()
+        if len(starts):
+            self.revisits.reset(starts)
+        self.revisits.arrive(self._all_slots, self.view)
+
     def _learner_step(
-        self, obs: Mapping[str, torch.Tensor], fixed: torch.Tensor | None = None
+        self, obs: Mapping[str, torch.Tensor], fixed: torch.Tensor | None = None, memory: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The learner's actions, under its search memory when it has one (as ``PPOAgent`` acts at evaluation),
-        and its new GRU state; ``fixed``: the observation's fixed encoder inputs, when cached."""
-        dist, _, new_hidden, _ = self.policy.forward_features(obs, self.hidden, self.masks, fixed=fixed)
+        and its new GRU state; ``fixed``: the observation's fixed encoder inputs, when cached; ``memory``: the
+        memory's features (N, memory_inputs), after :meth:`_memory_arrive`, for a policy that reads them."""
+        dist, _, new_hidden, _ = self.policy.forward_features(obs, self.hidden, self.masks, fixed=fixed, memory=memory)
         logits = dist.logits
-        if self.revisits is not None:
+        if memory is not None:
+            logits = self.revisits.penalise(self._all_slots, logits)
+        elif self.revisits is not None:
             starts = torch.nonzero(self.masks == 0).flatten()
             if len(starts):
                 self.revisits.reset(starts)
@@ -286,7 +312,9 @@ class DAggerTrainer(Trainer):
         for _ in range(steps):
             b = self.buffer.batch(self.buffer.sample(cfg.batch_sequences, self.sample_generator))
             obs = {"view": b["view"], "target": b["target"]}
-            dist, _, _, features = self.policy.forward_features(obs, b["hidden0"], b["masks"], fixed=b.get("fixed"))
+            dist, _, _, features = self.policy.forward_features(
+                obs, b["hidden0"], b["masks"], fixed=b.get("fixed"), memory=b.get("memory")
+            )
             logits = dist.logits
             labels = b["labels"]
             ce = set_nll(logits, labels, self.class_weights, b["weights"])

@@ -86,6 +86,7 @@ from findview_baselines.rl.encoders import (
     pyramid_costs,
     standardize,
 )
+from findview_baselines.rl.search_memory import MEMORY_FEATURES
 from findview_baselines.rl.signature import OPTIONAL_SIGNATURE_FIELDS, SIGNATURE_FIELDS, check_signature
 
 if TYPE_CHECKING:  # the schema lives above rl/ (it lists rl's variants); only its fields are read here
@@ -178,8 +179,11 @@ class Policy(nn.Module):
         hidden_size: int = 512,
         fine_shifts: int = 0,
         fine_scales: int = 1,
+        memory_inputs: int = 0,
     ) -> None:
         super().__init__()
+        if int(memory_inputs) < 0:
+            raise ValueError(f"memory_inputs must be 0 (off) or the width of the search memory's features, got {memory_inputs}")
         if variant not in VARIANTS:
             raise ValueError(f"unknown policy variant {variant!r}; choose one of {VARIANTS}")
         if fine_shifts and variant not in FINE_VARIANTS:
@@ -215,6 +219,10 @@ class Policy(nn.Module):
             feature_size = hidden_size
         self.feature_size = feature_size
 
+        # the search memory's features (search_memory.RevisitPenalty.memory_features), added to the encoder's
+        # through a linear map that starts at zero: the policy starts as the one without them (init_from)
+        self.memory_inputs = int(memory_inputs)
+        self.memory_proj = nn.Linear(self.memory_inputs, feature_size) if self.memory_inputs else None
         self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
         self.critic = nn.Linear(hidden_size, 1)
@@ -298,6 +306,8 @@ class Policy(nn.Module):
                 nn.init.zeros_(param)
         nn.init.orthogonal_(self.actor.weight, gain=0.01)
         nn.init.orthogonal_(self.critic.weight, gain=1.0)
+        if self.memory_proj is not None:
+            nn.init.zeros_(self.memory_proj.weight)
 
     # ---------------------------------------------------------------------------------------------
 
@@ -309,6 +319,8 @@ class Policy(nn.Module):
         if self.fine_shifts:  # only when set, so older readers still load fine_shifts=0 checkpoints
             sig["fine_shifts"] = self.fine_shifts
             sig["fine_scales"] = self.fine_scales
+        if self.memory_inputs:
+            sig["memory_inputs"] = self.memory_inputs
         return sig
 
     @property
@@ -402,27 +414,44 @@ class Policy(nn.Module):
         return torch.cat(outputs, dim=0).view(steps * num_envs, -1), h.squeeze(0)
 
     def forward(
-        self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor
+        self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor, memory: torch.Tensor | None = None
     ) -> tuple[Categorical, torch.Tensor, torch.Tensor]:
         """Action distribution (batch T*N), values (T*N,) and the last state (N, hidden)."""
-        dist, values, new_hidden, _ = self.forward_features(obs, hidden, masks)
+        dist, values, new_hidden, _ = self.forward_features(obs, hidden, masks, memory=memory)
         return dist, values, new_hidden
 
     def forward_features(
-        self, obs: Obs | None, hidden: torch.Tensor, masks: torch.Tensor, fixed: torch.Tensor | None = None
+        self, obs: Obs | None, hidden: torch.Tensor, masks: torch.Tensor, fixed: torch.Tensor | None = None,
+        memory: torch.Tensor | None = None,
     ) -> tuple[Categorical, torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`forward` plus the pre-GRU features (T*N, F) (input of an :class:`AuxHead`).
 
         Same inputs as :meth:`run_gru` (time-major ``T*N`` rows, ``hidden`` (N, hidden), masks (T*N,)).
         ``fixed``: the rows' :meth:`fixed_features` (T*N, D), computed earlier, instead of ``obs`` (the same
         result; the encoder's parameter-free part is skipped; ``agent.compile`` is not applied to the rest).
+        ``memory``: (T*N, :attr:`memory_inputs`) float, the search memory's features of each row
+        (``RevisitPenalty.memory_features``); required exactly when the policy was built with ``memory_inputs``.
         """
         several_steps = obs is not None and obs["view"].shape[0] > hidden.shape[0]
         features = self.features(obs, distinct_targets=several_steps, fixed=fixed)
+        features = self._add_memory(features, memory)
         out, new_hidden = self.run_gru(features, hidden, masks)
         dist = Categorical(logits=self.actor(out))
         values = self.critic(out).squeeze(-1)
         return dist, values, new_hidden, features
+
+    def _add_memory(self, features: torch.Tensor, memory: torch.Tensor | None) -> torch.Tensor:
+        """``features`` (B, F) plus the projected search-memory features (B, memory_inputs), when the policy reads them."""
+        if self.memory_proj is None:
+            if memory is not None:
+                raise ValueError("this policy was built without memory inputs (memory_inputs=0) but was given memory features")
+            return features
+        if memory is None or tuple(memory.shape) != (features.shape[0], self.memory_inputs):
+            got = None if memory is None else tuple(memory.shape)
+            raise ValueError(f"this policy reads the search memory: it needs memory features of shape "
+                             f"({features.shape[0]}, {self.memory_inputs}), got {got} (agent.memory_inputs needs "
+                             f"agent.revisit_penalty > 0)")
+        return features + self.memory_proj(memory.to(features.dtype))
 
     # ---------------------------------------------------------------------------------------------
     # The API used by the trainer / evaluator
@@ -450,7 +479,7 @@ class Policy(nn.Module):
     @scoped(lambda self: self.heavy)
     def get_value(self, obs: Obs, hidden: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
         """Critic value (N,) of one step (same inputs as :meth:`act`)."""
-        out, _ = self.run_gru(self.features(obs), hidden, masks)
+        out, _ = self.run_gru(self._add_memory(self.features(obs), None), hidden, masks)
         return self.critic(out).squeeze(-1)
 
     def evaluate_actions(
@@ -473,8 +502,9 @@ class Policy(nn.Module):
 
 def build_policy(agent: "PPOAgentConfig", height: int, width: int) -> Policy:
     """Policy from the ``agent`` section (:class:`findview_baselines.config.PPOAgentConfig`: ``variant``,
-    ``hidden_size``, ``fine_shifts``, ``fine_scales``; speed options ``precision``, ``channels_last``,
+    ``hidden_size``, ``fine_shifts``, ``fine_scales``, ``memory_inputs``; speed options ``precision``, ``channels_last``,
     ``compile``, see :meth:`Policy.configure_speed`) and the view size of ``sim`` (pixels)."""
     policy = Policy(height=int(height), width=int(width), variant=agent.variant, hidden_size=agent.hidden_size,
-                    fine_shifts=agent.fine_shifts, fine_scales=agent.fine_scales)
+                    fine_shifts=agent.fine_shifts, fine_scales=agent.fine_scales,
+                    memory_inputs=MEMORY_FEATURES if agent.memory_inputs else 0)
     return policy.configure_speed(precision=agent.precision, channels_last=agent.channels_last, compile=agent.compile)

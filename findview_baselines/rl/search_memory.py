@@ -35,7 +35,18 @@ from typing import Any
 
 import torch
 
-__all__ = ["RevisitPenalty", "make_revisit_penalty"]
+__all__ = ["MEMORY_FEATURES", "RevisitPenalty", "make_revisit_penalty", "memory_band"]
+
+#: columns of :meth:`RevisitPenalty.memory_features` (the input width of a policy that reads the search memory)
+MEMORY_FEATURES = 5
+
+
+def memory_band(fov: float, step_deg: int = 1) -> int:
+    """Half-height, in steps, of the row band one view covers for :meth:`RevisitPenalty.memory_features`:
+    ``round(fov / 2 / step_deg) - 1`` (at least 1): after half a FoV of pitch moves the band no longer holds the
+    row the agent looked around. ``fov`` in degrees."""
+    return max(1, int(round(float(fov) / 2.0 / int(step_deg))) - 1)
+
 
 def make_revisit_penalty(
     num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0
@@ -126,12 +137,24 @@ class RevisitPenalty:
         Returns:
             ``(K, 5)`` logits: where the policy's argmax is ``STOP``, only ``STOP`` is finite; elsewhere ``STOP`` is
             ``-inf`` and each move has ``penalty x visits(destination)`` subtracted.
+
+        The same as :meth:`arrive` followed by :meth:`penalise` (a policy that reads :meth:`memory_features`
+        calls the two around its forward pass).
         """
+        self.arrive(idx, view)
+        return self.penalise(idx, logits)
+
+    def arrive(self, idx: torch.Tensor, view: torch.Tensor) -> None:
+        """Slots ``idx`` ``(K,)`` arrive at their current pose: apply their pending moves (unless ``view``
+        ``(K, 3, H, W)`` shows a blocked one) and count the visit. Call once per step, before :meth:`penalise`."""
         idx = idx.to(self.device)
-        view = view.to(self.device)
-        self._settle(idx, view)
+        self._settle(idx, view.to(self.device))
+        self.visits[idx, self.pitch[idx] + self.max_pitch, self.yaw[idx]] += 1
+
+    def penalise(self, idx: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+        """The logits ``(K, 5)`` of slots ``idx`` after their :meth:`arrive`, penalised as :meth:`adjust` says."""
+        idx = idx.to(self.device)
         rows = self.pitch[idx] + self.max_pitch
-        self.visits[idx, rows, self.yaw[idx]] += 1
         p, y = self._destinations(idx)
         seen = self.visits[idx[:, None], p, y]  # (K, 4)
         out = logits.clone()
@@ -143,6 +166,47 @@ class RevisitPenalty:
         out[:, 4] = torch.where(stop, logits[:, 4], torch.full_like(logits[:, 4], float("-inf")))
         out[stop] = torch.where(torch.arange(5, device=out.device) == 4, logits[stop], torch.full_like(logits[stop], float("-inf")))
         return out
+
+    def memory_features(self, idx: torch.Tensor, band: int) -> torch.Tensor:
+        """What the memory says about the search so far, as ``(K, MEMORY_FEATURES)`` float32 inputs for a policy.
+
+        ``band`` (steps, >= 1) is the half-height of the row band a view covers (about half a FoV: the agent
+        calls it with ``round(fov / 2 / step) - 1``). With ``p`` the current pitch offset, a yaw cell counts as
+        *seen* in a band of rows when any row of the band has a visit in that column; the columns are:
+
+        0. ``1.0`` when the band ``[p - band, p + band]`` holds ``row_cover`` of a full turn of seen cells
+           (the current row has been looked around), else ``0.0``;
+        1. the share of a full turn seen in that band (0..1);
+        2. ``1.0`` when the rows above, ``[p + 1, p + 2 band + 1]``, hold ``row_cover`` of a turn;
+        3. the same for the rows below, ``[p - 2 band - 1, p - 1]``;
+        4. ``p`` in units of 90 steps (signed: ``+`` above the start), clamped to ``[-2, 2]``.
+
+        Call it after :meth:`arrive` (the current pose and its visit are counted).
+        """
+        band = int(band)
+        if band < 1:
+            raise ValueError(f"memory band must be >= 1 steps, got {band}")
+        idx = idx.to(self.device)
+        rows = self.pitch[idx] + self.max_pitch  # (K,) row of the current pose
+        seen = self.visits[idx] > 0  # (K, R, Y)
+        # seen cells per column in rows [0, r) for every r: one cumulative sum, then each band is a difference
+        upto = torch.nn.functional.pad(seen.to(torch.int16).cumsum(dim=1, dtype=torch.int16), (0, 0, 1, 0))  # (K, R+1, Y)
+        last = seen.shape[1]
+
+        def cells(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:  # seen columns in rows [lo, hi]
+            lo = lo.clamp(0, last)
+            hi = (hi + 1).clamp(0, last)
+            k = torch.arange(len(idx), device=self.device)
+            return ((upto[k, hi] - upto[k, lo]) > 0).sum(dim=-1)  # (K,)
+
+        here = cells(rows - band, rows + band)
+        above = cells(rows + 1, rows + 2 * band + 1)
+        below = cells(rows - 2 * band - 1, rows - 1)
+        cover = self.cover_cells
+        return torch.stack([
+            (here >= cover).float(), here.float() / self.yaw_cells, (above >= cover).float(), (below >= cover).float(),
+            (self.pitch[idx].float() / 90.0).clamp(-2.0, 2.0),
+        ], dim=1)
 
     def _row_search(self, idx: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
         """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn, force pitch

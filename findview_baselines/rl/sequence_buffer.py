@@ -21,7 +21,8 @@ class SequenceBuffer:
     masks (L,) (0 where an episode starts); labels (L, 5) bool (the accepted actions); aux (L, 3) float
     (when ``with_aux``); fixed (L, fixed_size) float, the policy's parameter-free encoder output for each
     step (when ``fixed_size > 0``: computed once when the chunk arrives instead of at every gradient step;
-    not saved by :meth:`state_dict`, :meth:`recompute_fixed` rebuilds it from the images).
+    not saved by :meth:`state_dict`, :meth:`recompute_fixed` rebuilds it from the images); memory (L, memory_size)
+    float, the search memory's features the policy read at each step (when ``memory_size > 0``; saved).
     """
 
     def __init__(
@@ -34,6 +35,7 @@ class SequenceBuffer:
         device: torch.device | str = "cpu",
         with_aux: bool = False,
         fixed_size: int = 0,
+        memory_size: int = 0,
     ) -> None:
         self.capacity, self.seq_len = int(capacity), int(seq_len)
         self.device = torch.device(device)
@@ -46,6 +48,7 @@ class SequenceBuffer:
         self.weights = torch.ones(c, L, **kw)
         self.aux = torch.empty(c, L, AUX_SIZE, **kw) if with_aux else None
         self.fixed = torch.empty(c, L, int(fixed_size), **kw) if fixed_size > 0 else None
+        self.memory = torch.empty(c, L, int(memory_size), **kw) if memory_size > 0 else None
         self.pos = 0  # next slot to write
         self.size = 0  # filled slots
 
@@ -62,10 +65,11 @@ class SequenceBuffer:
         aux: torch.Tensor | None = None,
         weights: torch.Tensor | None = None,
         fixed: torch.Tensor | None = None,
+        memory: torch.Tensor | None = None,
     ) -> None:
         """Append ``n`` chunks given time-major: view / target (L, n, 3, H, W), hidden0 (n, hidden), masks
         (L, n), labels (L, n, 5) bool, aux (L, n, 3), weights (L, n) loss weights (default 1), fixed (L, n,
-        fixed_size) (required when the buffer stores it). The oldest chunks are overwritten when full."""
+        fixed_size) and memory (L, n, memory_size) (each required when the buffer stores it). The oldest chunks are overwritten when full."""
         n = hidden0.shape[0]
         if n > self.capacity:  # keep the newest
             keep = slice(n - self.capacity, n)
@@ -74,6 +78,7 @@ class SequenceBuffer:
             aux = None if aux is None else aux[:, keep]
             weights = None if weights is None else weights[:, keep]
             fixed = None if fixed is None else fixed[:, keep]
+            memory = None if memory is None else memory[:, keep]
             n = self.capacity
         slots = (torch.arange(n) + self.pos) % self.capacity
         slots = slots.to(self.device)
@@ -91,6 +96,10 @@ class SequenceBuffer:
             if fixed is None:
                 raise ValueError("this buffer stores the fixed encoder inputs; add() needs fixed")
             self.fixed[slots] = fixed.transpose(0, 1).to(self.device, torch.float32)
+        if self.memory is not None:
+            if memory is None:
+                raise ValueError("this buffer stores the search memory's features; add() needs memory")
+            self.memory[slots] = memory.transpose(0, 1).to(self.device, torch.float32)
         self.pos = (self.pos + n) % self.capacity
         self.size = min(self.capacity, self.size + n)
 
@@ -120,6 +129,8 @@ class SequenceBuffer:
             out["aux"] = tm(self.aux)
         if self.fixed is not None:
             out["fixed"] = tm(self.fixed)
+        if self.memory is not None:
+            out["memory"] = tm(self.memory)
         return out
 
     def recompute_fixed(self, fixed_of: Callable[[dict[str, torch.Tensor]], torch.Tensor], chunks: int = 32) -> None:
@@ -149,6 +160,8 @@ class SequenceBuffer:
         }
         if self.aux is not None:
             state["aux"] = self.aux[:n].cpu().clone()
+        if self.memory is not None:
+            state["memory"] = self.memory[:n].cpu().clone()
         return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -169,4 +182,8 @@ class SequenceBuffer:
             if state.get("aux") is None:
                 raise ValueError("saved DAgger buffer has no aux targets but dagger.aux_coef > 0")
             self.aux[:n] = state["aux"].to(self.device)
+        if self.memory is not None:
+            if state.get("memory") is None:
+                raise ValueError("saved DAgger buffer has no search-memory features but the policy reads them (agent.memory_inputs)")
+            self.memory[:n] = state["memory"].to(self.device)
         self.size, self.pos = n, int(state["pos"]) % self.capacity

@@ -6,11 +6,14 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-__all__ = ["SIGNATURE_FIELDS", "OPTIONAL_SIGNATURE_FIELDS", "TRANSFERABLE_VARIANTS", "check_signature"]
+__all__ = ["SIGNATURE_FIELDS", "OPTIONAL_SIGNATURE_FIELDS", "GROWABLE_FIELDS", "TRANSFERABLE_VARIANTS", "check_signature"]
 
 SIGNATURE_FIELDS = ("variant", "hidden_size", "height", "width")
 # signature fields added later, with the value a checkpoint that lacks them was trained with
-OPTIONAL_SIGNATURE_FIELDS = {"fine_shifts": 0, "fine_scales": 1}
+OPTIONAL_SIGNATURE_FIELDS = {"fine_shifts": 0, "fine_scales": 1, "memory_inputs": 0}
+# optional fields whose added parameters start at zero: a checkpoint without them (0) may initialise a model
+# with them (``init_from``; the model then starts as the saved one)
+GROWABLE_FIELDS = ("memory_inputs",)
 # variants with the same parameters (names and shapes) that differ only in how they prepare their inputs:
 # weights of one may initialise the other (``init_from``), never be evaluated or resumed as the other
 TRANSFERABLE_VARIANTS = (frozenset({"direct", "robust"}),)
@@ -21,7 +24,8 @@ def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any], transf
 
     ``saved`` is the dict stored in the checkpoint, ``current`` the one of the policy being loaded into
     (both from :meth:`Policy.model_signature`). ``transfer=True`` (weights that only initialise a new run,
-    ``init_from``) also accepts a variant of the same :data:`TRANSFERABLE_VARIANTS` family.
+    ``init_from``) also accepts a variant of the same :data:`TRANSFERABLE_VARIANTS` family, and a checkpoint
+    without the :data:`GROWABLE_FIELDS` a model with them needs (their parameters keep their zero start).
     """
     for key in SIGNATURE_FIELDS:
         if key not in saved:
@@ -35,6 +39,8 @@ def check_signature(saved: Mapping[str, Any], current: Mapping[str, Any], transf
                 f"but {current.get(key)!r} in the current config"
             )
     for key, default in OPTIONAL_SIGNATURE_FIELDS.items():
+        if transfer and key in GROWABLE_FIELDS and saved.get(key, default) == default:
+            continue
         if saved.get(key, default) != current.get(key, default):
             raise ValueError(
                 f"checkpoint does not fit this model: {key} is {saved.get(key, default)!r} in the checkpoint "

@@ -95,6 +95,9 @@ def make_trainer(cfg: TrainConfig, env: Any, policy: Policy, scheduler: Difficul
                              revisit_penalty=agent.revisit_penalty, revisit_row_stride=agent.revisit_row_stride)
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
+    if agent.memory_inputs:
+        raise UserError("agent.memory_inputs=true is trained with trainer=dagger only (PPO's rollout storage does not "
+                        "keep the search memory's features)")
     return PPOTrainer(env, policy, t.ppo, t.num_updates, scheduler, set_level, seed=seed)
 
 
@@ -154,4 +157,4 @@ def make_val_agent(agent: PPOAgentConfig, policy: Policy, num_envs: int, seed: i
     from findview_baselines.agents.ppo_agent import PPOAgent
 
     return PPOAgent(policy, num_envs, next(policy.parameters()).device, seed, sample=agent.sample,
-                    revisit_penalty=agent.revisit_penalty, revisit_row_stride=agent.revisit_row_stride)
+                    revisit_penalty=agent.revisit_penalty, revisit_row_stride=agent.revisit_row_stride, fov=agent.fov)
