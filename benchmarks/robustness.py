@@ -481,31 +481,25 @@ def estimate(cells: Sequence[Cell], rates: Mapping[str, Rate], episodes: Mapping
     return max(total / j, longest), max(total_max / j, longest_max), lines
 
 
-def finished_cell_seconds(cells: Sequence[Cell]) -> dict[str, list[float]]:
-    """``{agent key: [wall seconds of each finished cell]}`` from the cells' ``robustness.log`` (its last line,
-    ``# exit 0, S s``): what corrupted cells really took, where the calibration measures clean episodes only."""
-    out: dict[str, list[float]] = {}
+def rates_from_finished(cells: Sequence[Cell], startup: Mapping[str, Rate]) -> tuple[dict[str, Rate], int]:
+    """Per agent, the :class:`Rate` of its finished ``cells`` (their ``run.json`` loop times, episodes and steps
+    summed: what corrupted targets really cost, where the calibration measures clean episodes only), with the
+    start-up seconds of ``startup`` (the calibration's) when known; and how many cells went into them."""
+    totals: dict[str, list[float]] = {}
     for c in cells:
         try:
-            last = (c.run_dir / "robustness.log").read_text().rstrip().splitlines()[-1]
-        except (OSError, IndexError):
+            with open(c.run_dir / "run.json") as f:
+                rt = json.load(f)["runtime"]
+            loop, eps, steps = float(rt["wall_seconds"]), int(rt["episodes"]), int(rt["env_steps"])
+        except (OSError, KeyError, TypeError, ValueError):
             continue
-        m = re.fullmatch(r"# exit 0, ([0-9.]+) s", last.strip())
-        if m:
-            out.setdefault(c.agent.key, []).append(float(m.group(1)))
-    return out
-
-
-def estimate_from_finished(todo: Sequence[Cell], finished: Mapping[str, list[float]], jobs: int) -> str | None:
-    """A line with the expected time of ``todo`` from the mean wall time of the same agents' finished cells
-    (``None`` when an agent to run has none finished)."""
-    if not todo or any(c.agent.key not in finished for c in todo):
-        return None
-    total = sum(sum(finished[c.agent.key]) / len(finished[c.agent.key]) for c in todo)
-    done = sum(len(finished[k]) for k in {c.agent.key for c in todo})
-    j = max(1, min(jobs, len(todo)))
-    return (f"expected from the {done} finished cells of these agents (their mean wall time per cell, corrupted "
-            f"targets included): {fmt_duration(total / j)} on {j} jobs")
+        t = totals.setdefault(c.agent.key, [0.0, 0, 0, 0])
+        t[0], t[1], t[2], t[3] = t[0] + loop, t[1] + eps, t[2] + steps, t[3] + 1
+    rates = {}
+    for key, (loop, eps, steps, n) in totals.items():
+        start = startup[key].startup_s if key in startup else 4.0
+        rates[key] = Rate(loop / max(1, eps), loop / max(1, steps), start, f"{int(n)} finished cells, {int(eps)} episodes")
+    return rates, int(sum(t[3] for t in totals.values()))
 
 
 # ------------------------------------------------------------------------------------ tables, plots
@@ -788,9 +782,12 @@ def _run(args: argparse.Namespace, agents: Sequence[AgentSpec], plan: list[Cell]
               f"(clean-episode rates; at most {fmt_duration(most)} if every episode runs to T = {args.T})")
         if lines:
             print("\n".join(lines), flush=True)
-        from_finished = estimate_from_finished(todo, finished_cell_seconds(done), jobs)
-        if from_finished:
-            print(from_finished, flush=True)
+        finished, n_finished = rates_from_finished(done, rates)
+        if todo and all(c.agent.key in finished for c in todo):
+            exp_f, most_f, lines_f = estimate(todo, finished, episodes, args.T, jobs)
+            print(f"expected from the {n_finished} finished cells of these agents (corrupted targets included): "
+                  f"{fmt_duration(exp_f)}; at most {fmt_duration(most_f)}")
+            print("\n".join(lines_f), flush=True)
     t_cells = time.monotonic()
     failed: list[tuple[Cell, int]] = []
     if todo:

@@ -111,19 +111,25 @@ def test_dataset_overrides_reach_the_data_set_step(tmp_path, capsys, monkeypatch
 
 
 def test_expected_time_from_the_finished_cells(tmp_path):
-    """The finished cells' logged wall times (``# exit 0, S s``) estimate the rest; a failed cell, a cell without a
-    log and an agent with no finished cell give nothing to go on."""
+    """The finished cells' run.json loop times, episodes and steps give each agent a rate (with the calibration's
+    start-up seconds) that estimates the rest; a cell without (a readable) run.json gives nothing."""
     cells = plan(*ARGS, "--agents", "random", "orb", "--out", str(tmp_path))
     random_cells = [c for c in cells if c.agent.key == "random"]
-    for c, text in zip(random_cells, ["# exit 0, 100.0 s", "# exit 0, 300.0 s", "# exit 1, 5.0 s"]):
+    runtimes = [{"wall_seconds": 100.0, "episodes": 10, "env_steps": 1000},
+                {"wall_seconds": 300.0, "episodes": 30, "env_steps": 1000}]
+    for c, rt in zip(random_cells, [*runtimes, None, "broken"]):
         c.run_dir.mkdir(parents=True)
-        (c.run_dir / "robustness.log").write_text(f"$ tools/eval.py ...\noutput\n{text}\n")
-    assert robustness.finished_cell_seconds(cells) == {"random": [100.0, 300.0]}
-    todo = random_cells[3:]  # two cells left: 2 x the mean 200 s, on 2 jobs -> 200 s
-    line = robustness.estimate_from_finished(todo, robustness.finished_cell_seconds(cells), jobs=2)
-    assert line is not None and "2 finished cells" in line and robustness.fmt_duration(200.0) in line
-    orb_todo = [c for c in cells if c.agent.key == "orb"]
-    assert robustness.estimate_from_finished(orb_todo, robustness.finished_cell_seconds(cells), jobs=2) is None
+        if rt is not None:
+            (c.run_dir / "run.json").write_text(json.dumps({"runtime": rt}) if rt != "broken" else "{")
+    calibrated = {"random": robustness.Rate(1.0, 0.01, 2.5, "calibration")}
+    rates, n = robustness.rates_from_finished(cells, calibrated)
+    assert n == 2 and set(rates) == {"random"}
+    r = rates["random"]  # 400 s over 40 episodes and 2000 steps
+    assert (r.s_per_episode, r.s_per_step, r.startup_s) == (10.0, 0.2, 2.5)
+    todo = random_cells[2:4]  # the two unfinished cells, 12 episodes each: 2 x (2.5 + 120) s on 2 jobs -> 122.5 s
+    exp, most, lines = robustness.estimate(todo, rates, {90.0: 12}, 100, jobs=2)
+    assert exp == 122.5 and most == 2.5 + 12 * 100 * 0.2 and "2 finished cells, 40 episodes" in lines[0]
+    assert robustness.rates_from_finished(cells, {})[0]["random"].startup_s == 4.0  # no calibration yet
 
 
 def test_user_agent_threads_are_not_overridden():
