@@ -128,7 +128,7 @@ class PPOAgent(Agent):
         sample: bool = False,
         height: int | None = None,
         width: int | None = None,
-        revisit_penalty: float = 0.0,
+        revisit_penalty: float | None = None,
         revisit_row_stride: int = 0,
         refiner: StopRefiner | None = None,
         stop_prob: float | None = None,
@@ -139,12 +139,19 @@ class PPOAgent(Agent):
         Args:
             height, width: the simulator's view size: the checkpoint's, or the same integer multiple of its
                 height and width (:func:`downsample_factor`); another size raises ``ValueError`` saying which.
+            revisit_penalty, fov: ``None``: the values the checkpoint's run trained with (``agent.revisit_penalty``,
+                ``sim.fov`` of its stored config; 0 and none when it has none).
         """
         from findview_baselines.rl.policy import Policy
         from findview_baselines.rl.signature import check_signature
 
         state = load_ppo_checkpoint(path)
         sig = dict(state["signature"])
+        run_conf = dict(state.get("config") or {})
+        if revisit_penalty is None:
+            revisit_penalty = float(dict(run_conf.get("agent") or {}).get("revisit_penalty", 0.0))
+        if fov is None and "fov" in dict(run_conf.get("sim") or {}):
+            fov = float(run_conf["sim"]["fov"])
         missing = [k for k in ("variant", "hidden_size", "height", "width") if k not in sig]
         if missing:
             raise ValueError(f"{path}: checkpoint model signature lacks {missing} (signature: {sig})")
