@@ -536,7 +536,7 @@ def test_cached_fixed_features_train_the_same_weights(panoramas) -> None:
     assert torch.allclose(resumed.buffer.fixed[:n], cached.buffer.fixed[:n], atol=1e-6)
 
 
-def memory_run(images, updates: int, state: dict | None = None, cover_cells: int = 6) -> DAggerTrainer:
+def memory_run(images, updates: int, state: dict | None = None, cover_cells: int = 6, warm: float = 0.0) -> DAggerTrainer:
     """A DAgger run of a policy that reads its search memory, on hard starts only, with the oracle executing every
     step and a memory that calls a row done after ``cover_cells`` yaw cells (a full turn would take 360 steps)."""
     torch.manual_seed(0)
@@ -544,7 +544,7 @@ def memory_run(images, updates: int, state: dict | None = None, cover_cells: int
     env.source.level = 3
     policy = Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2, memory_inputs=MEMORY_FEATURES)
     cfg = DAggerConfig(rollout_steps=16, seq_len=4, buffer_size=400, batch_sequences=3, epochs=2.0, beta_end=1.0,
-                       labels="set", search_prior="pan", search_weight=0.25)
+                       labels="set", search_prior="pan", search_weight=0.25, row_done_band=0.0, memory_warm_start=warm)
     trainer = DAggerTrainer(env, policy, cfg, total_updates=6, revisit_penalty=2.0)
     trainer.revisits.cover_cells = cover_cells
     if state is None:
@@ -590,3 +590,16 @@ def test_memory_inputs_reach_the_buffer_the_labels_and_the_resume_state(panorama
     for (name, a), b in zip(trainer.policy.state_dict().items(), resumed.policy.state_dict().values()):
         assert torch.equal(a, b), name
     assert torch.equal(trainer.buffer.memory[:n], resumed.buffer.memory[:n])
+
+
+@pytest.mark.parametrize("warm", [0.0, 1.0])
+def test_memory_warm_start_begins_episodes_with_their_row_looked_around(panoramas, warm) -> None:
+    """memory_warm_start=1: every episode's first step already has its row done (a full turn of cells seen);
+    0: no first step has (one cell seen)."""
+    trainer = memory_run(panoramas, 3, cover_cells=360, warm=warm)
+    n = len(trainer.buffer)
+    first = trainer.buffer.masks[:n].flatten() == 0
+    memory = trainer.buffer.memory[:n].flatten(0, 1)
+    assert bool(first.any())
+    assert torch.equal(memory[first, 0], torch.full((int(first.sum()),), warm))
+    assert torch.allclose(memory[first, 1], torch.full((int(first.sum()),), 1.0 if warm else 1 / 360))

@@ -96,6 +96,10 @@ def test_pan_prior_leaves_a_finished_row_towards_the_target() -> None:
     assert mask[:4].sum(dim=1).tolist() == [1, 1, 1, 1]  # the search's one move
     assert mask[0, UP] and mask[1, DOWN] and mask[2, RIGHT] and mask[3, RIGHT]
     assert mask[4].tolist() == [True, False, False, True, False]  # the overlap keeps the shortest-path set
+    # row_done_band 0.25 (15 degrees at FoV 60): a done row is left only while the target is more than 15 degrees off
+    near = pan_actions(torch.tensor([0, 0, 0]), torch.zeros(3, dtype=torch.long), torch.tensor([15, 16, -16]),
+                       torch.tensor([170] * 3), 60.0, row_done=torch.tensor([True] * 3), row_done_band=0.25)
+    assert near.tolist() == [RIGHT, UP, DOWN]
 
 
 def test_following_the_row_done_labels_finds_a_target_the_pan_missed() -> None:

@@ -41,7 +41,8 @@ Conventions (docs/TASK.md): ``+pitch`` looks up (action ``UP``), ``+yaw`` pans r
   **Row done** (``row_done``, per environment): the searcher's own record that it has looked around its current row
   without finding the target (e.g. a full turn in its dead-reckoned search memory), which happens when it pans past a
   target that shares only a thin strip with its view. Where it is set, the prior moves the pitch towards the target
-  instead of panning on (every such move lies on a shortest path); a learner that sees the same record can learn
+  instead of panning on, while ``|dpitch| > row_done_band * fov`` (every such move lies on a shortest path; a band
+  above 0 lets the learner pan again once the target's row is roughly reached, not exactly); a learner that sees the same record can learn
   "leave a finished row, towards where the target's content suggests", and from the record of the rows it has
   already looked around, "back the other way" when it guessed wrong.
   The two regions do not trap a learner at their border: at ``dyaw = -fov`` the oracle moves ``LEFT``
@@ -210,14 +211,16 @@ def _check_band(pitch_band: float) -> float:
 
 
 def _pan_search(
-    dp: torch.Tensor, fov: float, pitch_band: float = 1.0, row_done: torch.Tensor | None = None
+    dp: torch.Tensor, fov: float, pitch_band: float = 1.0, row_done: torch.Tensor | None = None,
+    row_done_band: float = 0.0,
 ) -> torch.Tensor:
     """(N,) long: the pan prior's move where the views do not overlap (pitch move while
-    ``|dp| > pitch_band * fov`` or, where ``row_done`` (N,) bool is true, while ``dp != 0``; else ``RIGHT``)."""
+    ``|dp| > pitch_band * fov`` or, where ``row_done`` (N,) bool is true, while ``|dp| > row_done_band * fov``;
+    else ``RIGHT``)."""
     pitch_move = torch.where(dp > 0, int(Action.UP), int(Action.DOWN))
     move_pitch = dp.abs() > _check_band(pitch_band) * fov
     if row_done is not None:
-        move_pitch = move_pitch | (row_done.to(dp.device).bool() & (dp != 0))
+        move_pitch = move_pitch | (row_done.to(dp.device).bool() & (dp.abs() > _check_band(row_done_band) * fov))
     return torch.where(move_pitch, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
 
 
@@ -231,15 +234,17 @@ def pan_actions(
     order: str = "pitch_first",
     pitch_band: float = 1.0,
     row_done: torch.Tensor | None = None,
+    row_done_band: float = 0.0,
 ) -> torch.Tensor:
     """Oracle actions where the views overlap; elsewhere pan ``RIGHT`` (N,) long (a pitch move towards the
     target only while ``|dpitch| > pitch_band * fov``). See the module docstring ("pan search prior"); ``fov``
     in degrees, ``pitch_band`` a fraction of it in ``[0, 1]``. ``row_done`` (N,) bool, the searcher's own
     record that it has looked around its current row (e.g. a dead-reckoned search memory): where it is true
-    the prior moves the pitch towards the target instead of panning on (module docstring, "row done")."""
+    the prior moves the pitch towards the target while ``|dpitch| > row_done_band * fov`` instead of panning on
+    (module docstring, "row done")."""
     oracle = oracle_actions(pitch, yaw, target_pitch, target_yaw, step_deg, order)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
-    search = _pan_search(dp, fov, pitch_band, row_done)
+    search = _pan_search(dp, fov, pitch_band, row_done, row_done_band)
     return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
 
 
@@ -252,12 +257,13 @@ def pan_action_mask(
     step_deg: int = 1,
     pitch_band: float = 1.0,
     row_done: torch.Tensor | None = None,
+    row_done_band: float = 0.0,
 ) -> torch.Tensor:
     """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the pan prior's one move
-    (``pitch_band`` and ``row_done`` as in :func:`pan_actions`)."""
+    (``pitch_band``, ``row_done`` and ``row_done_band`` as in :func:`pan_actions`)."""
     optimal = optimal_action_mask(pitch, yaw, target_pitch, target_yaw, step_deg)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
-    search = torch.nn.functional.one_hot(_pan_search(dp, fov, pitch_band, row_done), len(Action)).bool()
+    search = torch.nn.functional.one_hot(_pan_search(dp, fov, pitch_band, row_done, row_done_band), len(Action)).bool()
     overlap = overlap_mask(pitch, yaw, target_pitch, target_yaw, fov)
     return torch.where(overlap[:, None], optimal, search)
 
@@ -277,13 +283,13 @@ def _env_rotations(
 
 def oracle_actions_for(
     env: Any, order: str = "pitch_first", search: str = "oracle", pitch_band: float = 1.0,
-    row_done: torch.Tensor | None = None,
+    row_done: torch.Tensor | None = None, row_done_band: float = 0.0,
 ) -> torch.Tensor:
     """Labels for the environments' current observations, (N,) long on ``env.device``.
 
     Reads ``env.pitch, env.yaw, env.target_pitch, env.target_yaw`` (and ``env.step_deg``, ``env.sim.fov``).
     ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`; ``search="pan"``:
-    :func:`pan_actions` (with ``pitch_band`` and ``row_done``; the other priors refuse ``row_done``). Call it before
+    :func:`pan_actions` (with ``pitch_band``, ``row_done``, ``row_done_band``; the other priors refuse ``row_done``). Call it before
     ``env.step`` to label the observation the policy acts on.
     """
     pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done)
@@ -291,21 +297,22 @@ def oracle_actions_for(
         return oracle_actions(pitch, yaw, tp, ty, step, order)
     if search == "sweep":
         return sweep_actions(pitch, yaw, tp, ty, fov, step, order)
-    return pan_actions(pitch, yaw, tp, ty, fov, step, order, pitch_band, row_done)
+    return pan_actions(pitch, yaw, tp, ty, fov, step, order, pitch_band, row_done, row_done_band)
 
 
 def optimal_action_mask_for(
-    env: Any, search: str = "oracle", pitch_band: float = 1.0, row_done: torch.Tensor | None = None
+    env: Any, search: str = "oracle", pitch_band: float = 1.0, row_done: torch.Tensor | None = None,
+    row_done_band: float = 0.0,
 ) -> torch.Tensor:
     """(N, 5) bool action sets of the environments' current observations (``search`` as in
     :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`,
-    ``pan`` -> :func:`pan_action_mask` with ``pitch_band`` and ``row_done``)."""
+    ``pan`` -> :func:`pan_action_mask` with ``pitch_band``, ``row_done``, ``row_done_band``)."""
     pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done)
     if search == "oracle":
         return optimal_action_mask(pitch, yaw, tp, ty, step)
     if search == "sweep":
         return sweep_action_mask(pitch, yaw, tp, ty, fov, step)
-    return pan_action_mask(pitch, yaw, tp, ty, fov, step, pitch_band, row_done)
+    return pan_action_mask(pitch, yaw, tp, ty, fov, step, pitch_band, row_done, row_done_band)
 
 
 def rotation_targets(

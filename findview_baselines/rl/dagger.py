@@ -230,9 +230,13 @@ class DAggerTrainer(Trainer):
                 self._memory_arrive()
                 memory[t] = self.revisits.memory_features(self._all_slots, self.memory_band)
                 row_done = memory[t, :, 0] > 0.5 if cfg.search_prior == "pan" else None
-            oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, row_done).to(dev)
+            oracle = oracle_actions_for(
+                env, cfg.order, cfg.search_prior, cfg.search_pitch_band, row_done, cfg.row_done_band
+            ).to(dev)
             if cfg.labels == "set":
-                label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, row_done).to(dev)
+                label = optimal_action_mask_for(
+                    env, cfg.search_prior, cfg.search_pitch_band, row_done, cfg.row_done_band
+                ).to(dev)
             else:
                 label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
             labels[t].copy_(label)
@@ -278,10 +282,15 @@ class DAggerTrainer(Trainer):
         return records, stats
 
     def _memory_arrive(self) -> None:
-        """The search memory: slots whose episode starts now forget, then every slot arrives at its pose."""
+        """The search memory: slots whose episode starts now forget (``memory_warm_start`` of them then count their
+        start row as looked around), then every slot arrives at its pose."""
         starts = torch.nonzero(self.masks == 0).flatten()
         if len(starts):
             self.revisits.reset(starts)
+            if self.cfg.memory_warm_start > 0:  # some episodes start as if the start row had been looked around
+                warm = torch.rand(len(starts), generator=self.mix_generator) < self.cfg.memory_warm_start
+                if bool(warm.any()):
+                    self.revisits.mark_row_seen(starts[warm.to(starts.device)])
         self.revisits.arrive(self._all_slots, self.view)
 
     def _learner_step(

@@ -57,6 +57,14 @@ class DAggerConfig:
     """``pan`` prior: where the views do not overlap, move the pitch towards the target while ``|dpitch|`` exceeds
     this fraction of the FoV, and pan right from there (1: pan at any pitch the views can overlap at; 0.5: pan
     only within half a FoV of the target's pitch, so the pan meets the target with at least half of it in view)."""
+    row_done_band: float = 0.25
+    """``pan`` prior with a policy that reads its search memory (``agent.memory_inputs``): once the memory says the
+    current row has been looked around, the labels move the pitch towards the target while ``|dpitch|`` exceeds
+    this fraction of the FoV (then pan again)."""
+    memory_warm_start: float = 0.0
+    """With ``agent.memory_inputs``: the share of new training episodes whose search memory starts as if the agent
+    had already looked around its start row a full turn, so the labels ask it to leave the row from the first step
+    (a state a learner otherwise meets only after a missed turn, 300+ steps into an episode). 0 = off."""
     order: str = "pitch_first"
     """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
     ``pitch_first``, ``yaw_first`` or ``larger_first``."""
@@ -106,6 +114,9 @@ class DAggerConfig:
             raise ConfigError(
                 f"trainer.dagger.search_pitch_band must be in [0, 1] (a fraction of the FoV), got {self.search_pitch_band!r}"
             )
+        for name in ("row_done_band", "memory_warm_start"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
         if self.labels not in LABEL_MODES:
             raise ConfigError(f"trainer.dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
         if self.order not in ORDERS:

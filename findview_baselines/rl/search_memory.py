@@ -120,6 +120,13 @@ class RevisitPenalty:
         self.row_seek[ids] = False
         self.last_blocked[ids] = False
 
+    def mark_row_seen(self, env_ids: torch.Tensor) -> None:
+        """Slots ``env_ids`` (long tensor) count one visit in every yaw cell of their current row, as if they had
+        looked around it a full turn (a training augmentation: the "row done" state from an episode's start)."""
+        ids = env_ids.to(self.device)
+        rows = self.pitch[ids] + self.max_pitch
+        self.visits[ids, rows] = torch.clamp(self.visits[ids, rows], min=1)
+
     def _destinations(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pitch row and yaw column of each move's destination: two ``(K, 4)`` long tensors."""
         p = (self.pitch[idx, None] + self._moves[None, :, 0]).clamp(-self.max_pitch, self.max_pitch) + self.max_pitch
