@@ -252,8 +252,8 @@ class PPOAgentConfig:
     """With the search memory on: once the agent has looked around a full turn near its row, it moves to the next
     search row, this many 1-step moves above / below its start (alternately: +s, -s, +2s, -2s, ...). 0 = off."""
     memory_inputs: bool = False
-    """The network reads its search memory (needs ``revisit_penalty > 0``): per step, whether it has looked around
-    a full turn near its current row, how much of it, whether the rows above / below have been, and its pitch
+    """The network reads its search memory (needs ``revisit_penalty > 0`` and 1-degree actions): per step, whether it
+    has looked at 90% of a full turn of yaw cells near its current row, how much of a turn, whether the rows above / below have been, and its pitch
     offset from the start (findview_baselines/rl/search_memory.py, ``memory_features``). With DAgger's ``pan``
     search prior the labels then leave a finished row towards the target. Part of the checkpoint signature."""
     refine_stop: bool = False

@@ -481,6 +481,20 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy
 
 
+def test_checkpoint_eval_agent_fov_follows_the_runs_fov(tiny_ckpt, tmp_path):
+    """agent.fov (the stop refinement's and the search memory's degrees) is the FoV the views get: the checkpoint's
+    run's, else the command line's sim.fov, unless agent.fov itself is given."""
+    from findview_baselines.evaluation.evaluate import apply_checkpoint_config
+
+    state = torch.load(tiny_ckpt, weights_only=True)
+    state["config"] = {"sim": {"fov": 60.0}}
+    ckpt = tmp_path / "fov60.pth"
+    torch.save(state, ckpt)
+    for given, sim_fov, agent_fov in (([], 60.0, 60.0), (["sim.fov=90"], 90.0, 90.0), (["agent.fov=75"], 60.0, 75.0)):
+        cfg = apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *given), given)
+        assert (cfg.sim.fov, cfg.agent.fov) == (sim_fov, agent_fov), given
+
+
 def test_checkpoint_eval_renders_at_the_size_its_run_rendered(tiny_ckpt, tmp_path):
     """A run with agent.downsample=k rendered k times its network's size: evaluation renders that size too
     unless the command line gives one; a checkpoint without a run config renders its network's size."""

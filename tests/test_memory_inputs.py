@@ -40,8 +40,10 @@ def test_memory_features_after_a_turn_and_a_climb() -> None:
     f = memory.memory_features(ids, 29)
     assert f.shape == (2, MEMORY_FEATURES)
     assert torch.allclose(f[0], torch.tensor([0.0, 1 / 360, 0.0, 0.0, 0.0]))
-    for _ in range(323):  # 324 cells seen: 0.9 of a turn, the default row_cover
+    for _ in range(322):  # 323 cells seen: not yet 0.9 of a turn (324, the default row_cover)
         views = step_all(memory, views, [RIGHT, RIGHT])
+    assert memory.memory_features(ids, 29)[:, 0].tolist() == [0.0, 0.0]
+    views = step_all(memory, views, [RIGHT, RIGHT])
     assert memory.memory_features(ids, 29)[:, 0].tolist() == [1.0, 1.0]
     for _ in range(36):
         views = step_all(memory, views, [RIGHT, RIGHT])
@@ -155,6 +157,13 @@ def test_memory_policy_starts_as_the_policy_without_memory_and_grows_from_a_chec
         grown(obs, hidden, masks)
     with pytest.raises(ValueError, match="built without memory inputs"):
         plain(obs, hidden, masks, memory=memory)
+    # a checkpoint that claims memory inputs but lacks their weights is refused, also as init_from
+    broken = {k: v for k, v in grown.state_dict().items() if not k.startswith("memory_proj.")}
+    bad = save_checkpoint(tmp_path / "broken.pth", {"signature": grown.model_signature(), "policy": broken})
+    with pytest.raises(CheckpointError, match="Missing key.*memory_proj.weight"):
+        load_policy(bad, small_memory_policy(), transfer=True)
+    with pytest.raises(ValueError, match="memory_inputs must be 0"):
+        Policy(32, 32, variant="direct", hidden_size=16, memory_inputs=3)
     # the memory reaches the output once its map has weights
     with torch.no_grad():
         grown.memory_proj.weight.fill_(0.5)
@@ -184,7 +193,9 @@ def test_config_and_trainers_refuse_memory_without_the_memory() -> None:
     from findview_baselines.cli import compose_config, validate_config
     from findview_baselines.errors import UserError
 
-    with pytest.raises(Exception, match="agent.memory_inputs=true"):
+    from findview.config import ConfigError
+
+    with pytest.raises(ConfigError, match="agent.memory_inputs=true"):
         validate_config(compose_config("train", ["agent=ppo", "agent.memory_inputs=true"]))
     cfg = validate_config(compose_config("train", ["agent=ppo", "agent.memory_inputs=true", "agent.revisit_penalty=4"]))
     assert cfg.agent.memory_inputs

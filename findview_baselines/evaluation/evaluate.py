@@ -213,7 +213,7 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
 
     ``sim.fov`` / ``sim.height`` / ``sim.width`` come from the checkpoint (the view size its run rendered,
     an integer multiple of its network's with ``agent.downsample``) unless given on the command line
-    (or a ``sim=`` preset was chosen); ``agent`` becomes a learned-agent config with the checkpoint's model
+    (or a ``sim=`` preset was chosen), and ``agent.fov`` follows ``sim.fov`` unless given; ``agent`` becomes a learned-agent config with the checkpoint's model
     (keeping ``agent.sample`` when the learned agent was chosen); the search memory
     (``agent.revisit_penalty``, ``agent.revisit_row_stride``) is the command line's, else the training
     run's, else the schema's. ``cfg`` itself is not changed.
@@ -242,7 +242,9 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     model: dict[str, Any] = {k: sig[k] for k in _MODEL_KEYS if k in sig}
     model["memory_inputs"] = bool(sig.get("memory_inputs", 0))  # a width in the signature, a switch in the config
     search = {k: trained_agent[k] for k in _SEARCH_KEYS if k in trained_agent and f"agent.{k}" not in given}
-    agent = replace(cfg.agent if learned else PPOAgentConfig(), **model, **search)
+    # agent.fov (the refinement's degrees per pixel, the search memory's band) follows the FoV the views will have
+    fov = {} if "agent.fov" in given else {"fov": float(view.get("fov", cfg.sim.fov))}
+    agent = replace(cfg.agent if learned else PPOAgentConfig(), **model, **search, **fov)
     return replace(cfg, sim=replace(cfg.sim, **view), agent=agent)
 
 

@@ -172,6 +172,10 @@ def checkpoint_payload(
     }
 
 
+#: the policy module that holds the parameters of each growable signature field (rl/signature.py GROWABLE_FIELDS)
+GROWN_MODULES = {"memory_inputs": "memory_proj"}
+
+
 def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool = False,
                 key: str | None = None) -> dict[str, Any]:
     """Load the weights of a checkpoint into ``policy`` after checking its signature; returns the checkpoint.
@@ -192,9 +196,14 @@ def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool
     except ValueError as err:
         raise CheckpointError(f"{label}: {err} (use a checkpoint of the same agent.variant / agent.hidden_size / "
                               f"view size)") from None
-    missing, unexpected = policy.load_state_dict(state["policy"], strict=not transfer)
-    grown = tuple(f"{name}." for name in ("memory_proj",))  # parameters of GROWABLE_FIELDS (zero at start)
-    missing = [k for k in missing if not k.startswith(grown)]
+    # a GROWABLE_FIELDS part the saved model lacks keeps its zero start (init_from only); anything else must fit
+    grown = tuple(f"{module}." for field, module in GROWN_MODULES.items()
+                  if transfer and not state["signature"].get(field) and policy.model_signature().get(field))
+    try:
+        missing, unexpected = policy.load_state_dict(state["policy"], strict=not grown)
+    except RuntimeError as err:
+        raise CheckpointError(f"{label}: weights do not fit this model ({err})") from None
+    missing = [k for k in missing if not k.startswith(grown)] if grown else missing
     if missing or unexpected:
         raise CheckpointError(f"{label}: weights do not fit this model (missing {missing}, unexpected {unexpected})")
     return state

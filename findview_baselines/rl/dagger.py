@@ -168,7 +168,10 @@ class DAggerTrainer(Trainer):
         if policy.memory_inputs:
             if self.revisits is None:
                 raise ValueError("a policy with memory inputs reads the search memory: it needs revisit_penalty > 0")
-            self.memory_band = memory_band(float(env.sim.fov), int(getattr(env, "step_deg", 1)))
+            if int(getattr(env, "step_deg", 1)) != 1:
+                raise ValueError(f"memory inputs need 1-degree actions (the search memory's grid), got "
+                                 f"task.step_deg={env.step_deg}")
+            self.memory_band = memory_band(float(env.sim.fov))
 
     # ---------------------------------------------------------------------------------------------
 
@@ -241,8 +244,12 @@ class DAggerTrainer(Trainer):
                 label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
             labels[t].copy_(label)
             if cfg.search_weight != 1.0:
-                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov)).to(dev)
-                searching = ~overlap if row_done is None else ~overlap & ~row_done  # leaving a finished row: full weight
+                fov = float(env.sim.fov)
+                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov).to(dev)
+                searching = ~overlap
+                if row_done is not None:  # the steps that leave a finished row weigh fully
+                    far = (env.target_pitch - env.pitch).abs().to(dev) > cfg.row_done_band * fov
+                    searching = searching & ~(row_done & far)
                 weights[t].masked_fill_(searching, cfg.search_weight)
             if aux is not None:
                 aux[t].copy_(rotation_labels(env).to(dev))

@@ -182,8 +182,9 @@ class Policy(nn.Module):
         memory_inputs: int = 0,
     ) -> None:
         super().__init__()
-        if int(memory_inputs) < 0:
-            raise ValueError(f"memory_inputs must be 0 (off) or the width of the search memory's features, got {memory_inputs}")
+        if int(memory_inputs) not in (0, MEMORY_FEATURES):
+            raise ValueError(f"memory_inputs must be 0 (off) or {MEMORY_FEATURES} (the width of the search memory's "
+                             f"features), got {memory_inputs}")
         if variant not in VARIANTS:
             raise ValueError(f"unknown policy variant {variant!r}; choose one of {VARIANTS}")
         if fine_shifts and variant not in FINE_VARIANTS:

@@ -177,11 +177,11 @@ class RevisitPenalty:
     def memory_features(self, idx: torch.Tensor, band: int) -> torch.Tensor:
         """What the memory says about the search so far, as ``(K, MEMORY_FEATURES)`` float32 inputs for a policy.
 
-        ``band`` (steps, >= 1) is the half-height of the row band a view covers (about half a FoV: the agent
-        calls it with ``round(fov / 2 / step) - 1``). With ``p`` the current pitch offset, a yaw cell counts as
+        ``band`` (steps, >= 1) is the half-height of the row band a view covers (half a FoV less one step: the
+        agents call it with :func:`memory_band`). With ``p`` the current pitch offset, a yaw cell counts as
         *seen* in a band of rows when any row of the band has a visit in that column; the columns are:
 
-        0. ``1.0`` when the band ``[p - band, p + band]`` holds ``row_cover`` of a full turn of seen cells
+        0. ``1.0`` when the band ``[p - band, p + band]`` holds ``row_cover`` (default 0.9) of a full turn of seen cells
            (the current row has been looked around), else ``0.0``;
         1. the share of a full turn seen in that band (0..1);
         2. ``1.0`` when the rows above, ``[p + 1, p + 2 band + 1]``, hold ``row_cover`` of a turn;
