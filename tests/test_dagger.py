@@ -578,7 +578,7 @@ def test_memory_inputs_reach_the_buffer_the_labels_and_the_resume_state(panorama
     assert not bool((weights[done] == 0.25).any())  # leaving a row weighs 1
     assert bool((~done & right & (weights == 0.25)).any()) and not bool((done & right & (weights == 0.25)).any())
     # the memory's features are in [0, 1] except the signed pitch offset
-    assert bool(((memory[:, :4] >= 0) & (memory[:, :4] <= 1)).all())
+    assert bool(((memory[:, :6] >= 0) & (memory[:, :6] <= 1)).all())
     # exact resume, the memory's features saved with the buffer
     first = memory_run(panoramas, 2)
     state = first.state_dict()

@@ -39,7 +39,7 @@ def test_memory_features_after_a_turn_and_a_climb() -> None:
     memory.arrive(ids, views)
     f = memory.memory_features(ids, 29)
     assert f.shape == (2, MEMORY_FEATURES)
-    assert torch.allclose(f[0], torch.tensor([0.0, 1 / 360, 0.0, 0.0, 0.0]))
+    assert torch.allclose(f[0], torch.tensor([0.0, 1 / 360, 0.0, 0.0, 0.0, 0.0, 0.0]))
     for _ in range(322):  # 323 cells seen: not yet 0.9 of a turn (324, the default row_cover)
         views = step_all(memory, views, [RIGHT, RIGHT])
     assert memory.memory_features(ids, 29)[:, 0].tolist() == [0.0, 0.0]
@@ -47,19 +47,27 @@ def test_memory_features_after_a_turn_and_a_climb() -> None:
     assert memory.memory_features(ids, 29)[:, 0].tolist() == [1.0, 1.0]
     for _ in range(36):
         views = step_all(memory, views, [RIGHT, RIGHT])
-    assert torch.allclose(memory.memory_features(ids, 29), torch.tensor([[1.0, 1.0, 0.0, 0.0, 0.0]] * 2))
+    assert torch.allclose(memory.memory_features(ids, 29), torch.tensor([[1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0]] * 2))
     for _ in range(29):  # 29 steps up / down: the band [p - 29, p + 29] still holds the start row
         views = step_all(memory, views, [UP, DOWN])
     f = memory.memory_features(ids, 29)
     assert f[:, 0].tolist() == [1.0, 1.0]
     views = step_all(memory, views, [UP, DOWN])  # 30 steps: the band has left the start row
     f = memory.memory_features(ids, 29)
-    # here: only the column of the climb (1 of 360); the start row lies below the first slot, above the second
-    expected = torch.tensor([[0.0, 1 / 360, 0.0, 1.0, 30 / 90], [0.0, 1 / 360, 1.0, 0.0, -30 / 90]])
+    # here: only the column of the climb (1 of 360); no search row (+-30, +-60 from the start) looked around yet
+    expected = torch.tensor([[0.0, 1 / 360, 0.0, 0.0, 0.0, 0.0, 30 / 90], [0.0, 1 / 360, 0.0, 0.0, 0.0, 0.0, -30 / 90]])
     assert torch.allclose(f, expected)
+    for _ in range(359):  # a turn at +30 / -30: the search row +s (first slot) / -s (second) is done
+        views = step_all(memory, views, [RIGHT, RIGHT])
+    expected = torch.tensor([[1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 30 / 90], [1.0, 1.0, 0.0, 1.0, 0.0, 0.0, -30 / 90]])
+    assert torch.allclose(memory.memory_features(ids, 29), expected)
+    for _ in range(60):  # through the start row (done) to -30 / +30: the band there is not done
+        views = step_all(memory, views, [DOWN, UP])
+    f = memory.memory_features(ids, 29)
+    assert f[:, 0].tolist() == [0.0, 0.0] and f[:, 2:6].tolist() == [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]
     memory.reset(torch.tensor([1]))
     memory.arrive(torch.tensor([1]), views[1:])
-    assert torch.allclose(memory.memory_features(torch.tensor([1]), 29), torch.tensor([[0.0, 1 / 360, 0.0, 0.0, 0.0]]))
+    assert torch.allclose(memory.memory_features(torch.tensor([1]), 29), torch.tensor([[0.0, 1 / 360] + [0.0] * 5]))
     with pytest.raises(ValueError, match="memory band must be >= 1"):
         memory.memory_features(ids, 0)
 
@@ -132,6 +140,23 @@ def test_following_the_row_done_labels_finds_a_target_the_pan_missed() -> None:
     assert run(use_memory=True) and not run(use_memory=False)
 
 
+def test_search_row_moves_go_to_the_next_row_not_looked_around() -> None:
+    """Rows +30, -30, +60, -60 from the start (band 29): the first of a ring on the target's side, then the other,
+    then the next ring; no move once all are done or on the row itself."""
+    from findview_baselines.rl.dagger import search_row_moves
+
+    memory = torch.zeros(7, MEMORY_FEATURES)
+    memory[1, 2] = 1  # +30 done
+    memory[2, 2:4] = 1  # ring 1 done
+    memory[3, 2:6] = 1  # every row done
+    memory[4, 3] = 1  # -30 done
+    offset = torch.tensor([0, 30, 30, 0, -5, 0, 30])
+    side = torch.tensor([1, 1, -1, 1, 1, -1, 1])
+    got = search_row_moves(memory, offset, side, 29).tolist()
+    # to +30, to -30, to -60 (the target's side of ring 2), none, to +30, to -30, on the row +30 itself: none
+    assert got == [UP, DOWN, DOWN, -1, UP, DOWN, -1]
+
+
 def small_memory_policy(memory_inputs: int = MEMORY_FEATURES) -> Policy:
     torch.manual_seed(0)
     return Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2, memory_inputs=memory_inputs)
@@ -142,7 +167,7 @@ def test_memory_policy_starts_as_the_policy_without_memory_and_grows_from_a_chec
     path = save_checkpoint(tmp_path / "plain.pth", {"signature": plain.model_signature(), "policy": plain.state_dict()})
     grown = small_memory_policy()
     assert grown.model_signature()["memory_inputs"] == MEMORY_FEATURES
-    with pytest.raises(CheckpointError, match="memory_inputs is 0 in the checkpoint but 5"):
+    with pytest.raises(CheckpointError, match=f"memory_inputs is 0 in the checkpoint but {MEMORY_FEATURES}"):
         load_policy(path, grown)  # evaluating / resuming needs the same model
     load_policy(path, grown, transfer=True)  # init_from: the new map starts at zero
     gen = torch.Generator().manual_seed(1)

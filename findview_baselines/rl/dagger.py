@@ -68,7 +68,7 @@ import torch
 from torch import nn
 
 from findview.runtime import scoped
-from findview.task import NUM_ACTIONS
+from findview.task import NUM_ACTIONS, Action
 from findview.task.oracle import (
     optimal_action_mask_for,
     oracle_actions_for,
@@ -98,6 +98,26 @@ STAT_KEYS = (
 )
 AUX_STAT_KEYS = ("aux_loss", "aux_rotation_loss", "aux_overlap_accuracy")
 STOP = NUM_ACTIONS - 1
+
+
+def search_row_moves(memory: torch.Tensor, offset: torch.Tensor, side: torch.Tensor, band: int) -> torch.Tensor:
+    """``row_done_labels=rows``: the pitch move (``UP`` / ``DOWN``, (N,) long; -1 where none is left) towards the next
+    search row the memory has not looked around.
+
+    ``memory``: (N, MEMORY_FEATURES) ``RevisitPenalty.memory_features`` (columns 2-5: rows ``+s, -s, +2s, -2s`` done,
+    ``s = band + 1`` steps from the start); ``offset``: (N,) the pitch offset from the start, steps; ``side``: (N,) +1
+    or -1, the ring's first row when neither of its two is done (the target's side of the start). A ring whose two
+    rows are done passes to the next; when every ring is done there is no move.
+    """
+    step = int(band) + 1
+    row = torch.full_like(offset, 2**30)  # no row left
+    for ring, (up, down) in reversed(list(enumerate(((2, 3), (4, 5)), start=1))):  # the nearest ring decides last
+        done_up, done_down = memory[:, up] > 0.5, memory[:, down] > 0.5
+        first = side * ring * step
+        target = torch.where(~done_up & ~done_down, first, torch.where(done_up, -ring * step, ring * step))
+        row = torch.where(done_up & done_down, row, target)
+    move = torch.where(row > offset, int(Action.UP), int(Action.DOWN))
+    return torch.where((row == 2**30) | (row == offset), torch.full_like(move, -1), move)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -233,21 +253,33 @@ class DAggerTrainer(Trainer):
                 self._memory_arrive()
                 memory[t] = self.revisits.memory_features(self._all_slots, self.memory_band)
                 row_done = memory[t, :, 0] > 0.5 if cfg.search_prior == "pan" else None
+            towards = row_done if cfg.row_done_labels == "target" else None  # the prior's own "row done" labels
             oracle = oracle_actions_for(
-                env, cfg.order, cfg.search_prior, cfg.search_pitch_band, row_done, cfg.row_done_band
+                env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards, cfg.row_done_band
             ).to(dev)
             if cfg.labels == "set":
                 label = optimal_action_mask_for(
-                    env, cfg.search_prior, cfg.search_pitch_band, row_done, cfg.row_done_band
+                    env, cfg.search_prior, cfg.search_pitch_band, towards, cfg.row_done_band
                 ).to(dev)
             else:
                 label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
+            leave = None
+            if row_done is not None and cfg.row_done_labels == "rows":  # to the next search row instead
+                start_pitch = env.pitch.to(dev) - self.revisits.pitch.to(dev)  # the dead-reckoned start row
+                side = torch.where(env.target_pitch.to(dev) >= start_pitch, 1, -1)
+                move = search_row_moves(memory[t], self.revisits.pitch.to(dev), side, self.memory_band)
+                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov)).to(dev)
+                leave = row_done & ~overlap & (move >= 0)
+                oracle = torch.where(leave, move, oracle)
+                label = torch.where(leave[:, None], nn.functional.one_hot(move.clamp(min=0), NUM_ACTIONS).bool(), label)
             labels[t].copy_(label)
             if cfg.search_weight != 1.0:
                 fov = float(env.sim.fov)
                 overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov).to(dev)
                 searching = ~overlap
-                if row_done is not None:  # the steps that leave a finished row weigh fully
+                if leave is not None:  # the steps that leave a finished row weigh fully
+                    searching = searching & ~leave
+                elif row_done is not None:
                     far = (env.target_pitch - env.pitch).abs().to(dev) > cfg.row_done_band * fov
                     searching = searching & ~(row_done & far)
                 weights[t].masked_fill_(searching, cfg.search_weight)

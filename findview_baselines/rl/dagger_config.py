@@ -12,6 +12,8 @@ from findview.task.oracle import ORDERS, SEARCH_PRIORS
 __all__ = ["DAggerConfig", "LABEL_MODES", "beta_at"]
 
 LABEL_MODES = ("action", "set")
+#: trainer.dagger.row_done_labels choices
+ROW_DONE_LABELS = ("target", "rows")
 
 
 @dataclass
@@ -61,6 +63,12 @@ class DAggerConfig:
     """``pan`` prior with a policy that reads its search memory (``agent.memory_inputs``): once the memory says the
     current row has been looked around, the labels move the pitch towards the target while ``|dpitch|`` exceeds
     this fraction of the FoV (then pan again)."""
+    row_done_labels: str = "target"
+    """With ``agent.memory_inputs`` and the ``pan`` prior, the label where the current row is done and the views do not
+    overlap: ``target`` moves the pitch towards the target (``row_done_band``); ``rows`` moves to the next search row
+    the memory has not looked around, ``+s, -s, +2s, -2s`` from the start (``s`` half a FoV), the first of a ring on
+    the target's side of the start: apart from that one side, the whole search is a function of the network's
+    inputs."""
     memory_warm_start: float = 0.0
     """With ``agent.memory_inputs``: the share of new training episodes whose search memory starts as if the agent
     had already looked around its start row a full turn, so the labels ask it to leave the row from the first step
@@ -117,6 +125,8 @@ class DAggerConfig:
         for name in ("row_done_band", "memory_warm_start"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        if self.row_done_labels not in ROW_DONE_LABELS:
+            raise ConfigError(f"trainer.dagger.row_done_labels must be one of {ROW_DONE_LABELS}, got {self.row_done_labels!r}")
         if self.labels not in LABEL_MODES:
             raise ConfigError(f"trainer.dagger.labels must be one of {LABEL_MODES}, got {self.labels!r}")
         if self.order not in ORDERS:

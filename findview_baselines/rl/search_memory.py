@@ -35,10 +35,12 @@ from typing import Any
 
 import torch
 
-__all__ = ["MEMORY_FEATURES", "RevisitPenalty", "make_revisit_penalty", "memory_band"]
+__all__ = ["MEMORY_FEATURES", "SEARCH_ROWS", "RevisitPenalty", "make_revisit_penalty", "memory_band"]
 
+#: the search rows of :meth:`RevisitPenalty.memory_features`, in units of ``band + 1`` steps from the start row
+SEARCH_ROWS = (1, -1, 2, -2)
 #: columns of :meth:`RevisitPenalty.memory_features` (the input width of a policy that reads the search memory)
-MEMORY_FEATURES = 5
+MEMORY_FEATURES = 3 + len(SEARCH_ROWS)
 
 
 def memory_band(fov: float, step_deg: int = 1) -> int:
@@ -184,9 +186,9 @@ class RevisitPenalty:
         0. ``1.0`` when the band ``[p - band, p + band]`` holds ``row_cover`` (default 0.9) of a full turn of seen cells
            (the current row has been looked around), else ``0.0``;
         1. the share of a full turn seen in that band (0..1);
-        2. ``1.0`` when the rows above, ``[p + 1, p + 2 band + 1]``, hold ``row_cover`` of a turn;
-        3. the same for the rows below, ``[p - 2 band - 1, p - 1]``;
-        4. ``p`` in units of 90 steps (signed: ``+`` above the start), clamped to ``[-2, 2]``.
+        2.-5. the same "done" for the bands around the search rows ``+s, -s, +2s, -2s`` (``s = band + 1`` steps)
+           from the start (rows fixed in the episode, so a search can be planned from them);
+        6. ``p`` in units of 90 steps (signed: ``+`` above the start), clamped to ``[-2, 2]``.
 
         Call it after :meth:`arrive` (the current pose and its visit are counted).
         """
@@ -207,13 +209,14 @@ class RevisitPenalty:
             return ((upto[k, hi] - upto[k, lo]) > 0).sum(dim=-1)  # (K,)
 
         here = cells(rows - band, rows + band)
-        above = cells(rows + 1, rows + 2 * band + 1)
-        below = cells(rows - 2 * band - 1, rows - 1)
         cover = self.cover_cells
-        return torch.stack([
-            (here >= cover).float(), here.float() / self.yaw_cells, (above >= cover).float(), (below >= cover).float(),
-            (self.pitch[idx].float() / 90.0).clamp(-2.0, 2.0),
-        ], dim=1)
+        columns = [(here >= cover).float(), here.float() / self.yaw_cells]
+        start = torch.full_like(rows, self.max_pitch)
+        for k in SEARCH_ROWS:  # the search rows +s, -s, +2s, -2s from the start
+            centre = start + k * (band + 1)
+            columns.append((cells(centre - band, centre + band) >= cover).float())
+        columns.append((self.pitch[idx].float() / 90.0).clamp(-2.0, 2.0))
+        return torch.stack(columns, dim=1)
 
     def _row_search(self, idx: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
         """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn, force pitch
