@@ -536,7 +536,8 @@ def test_cached_fixed_features_train_the_same_weights(panoramas) -> None:
     assert torch.allclose(resumed.buffer.fixed[:n], cached.buffer.fixed[:n], atol=1e-6)
 
 
-def memory_run(images, updates: int, state: dict | None = None, cover_cells: int = 6, warm: float = 0.0) -> DAggerTrainer:
+def memory_run(images, updates: int, state: dict | None = None, cover_cells: int = 6, warm: float = 0.0,
+               row_done_labels: str = "target") -> DAggerTrainer:
     """A DAgger run of a policy that reads its search memory, on hard starts only, with the oracle executing every
     step and a memory that calls a row done after ``cover_cells`` yaw cells (a full turn would take 360 steps)."""
     torch.manual_seed(0)
@@ -544,7 +545,8 @@ def memory_run(images, updates: int, state: dict | None = None, cover_cells: int
     env.source.level = 3
     policy = Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2, memory_inputs=MEMORY_FEATURES)
     cfg = DAggerConfig(rollout_steps=16, seq_len=4, buffer_size=400, batch_sequences=3, epochs=2.0, beta_end=1.0,
-                       labels="set", search_prior="pan", search_weight=0.25, row_done_band=0.0, memory_warm_start=warm)
+                       labels="set", search_prior="pan", search_weight=0.25, row_done_band=0.0, memory_warm_start=warm,
+                       row_done_labels=row_done_labels)
     trainer = DAggerTrainer(env, policy, cfg, total_updates=6, revisit_penalty=2.0)
     trainer.revisits.cover_cells = cover_cells
     if state is None:
@@ -603,3 +605,19 @@ def test_memory_warm_start_begins_episodes_with_their_row_looked_around(panorama
     assert bool(first.any())
     assert torch.equal(memory[first, 0], torch.full((int(first.sum()),), warm))
     assert torch.allclose(memory[first, 1], torch.full((int(first.sum()),), 1.0 if warm else 1 / 360))
+
+
+def test_row_done_labels_rows_leave_for_the_search_rows(panoramas) -> None:
+    """row_done_labels=rows: where the memory calls the row done, the views do not overlap and a search row is left,
+    the label is the lone pitch move towards it (here FoV 90: rows +-45, +-90 from the start), at full weight."""
+    trainer = memory_run(panoramas, 6, row_done_labels="rows", warm=1.0)
+    n = len(trainer.buffer)
+    memory = trainer.buffer.memory[:n].flatten(0, 1)
+    labels = trainer.buffer.labels[:n].flatten(0, 1)
+    weights = trainer.buffer.weights[:n].flatten()
+    done = memory[:, 0] == 1.0
+    lone_pitch = (labels.sum(dim=1) == 1) & (labels[:, Action.UP] | labels[:, Action.DOWN])
+    assert bool((done & lone_pitch & (weights == 1.0)).any())
+    # a step at the start row with no search row done goes to the first row of ring 1: only UP or DOWN is labelled
+    first = (trainer.buffer.masks[:n].flatten() == 0) & done & (weights == 1.0) & lone_pitch
+    assert bool(first.any())
