@@ -38,6 +38,9 @@ ALLOWED: dict[tuple[str, str, str], str] = {
         "the resolved config YAML of a finished run folder (data on disk, any earlier version)",
     ("findview_baselines/evaluation/run_info.py", "run_settings", "agent"):
         "the agent section of that run-folder YAML (a plain dict)",
+    ("findview_baselines/agents/ppo_agent.py", "from_checkpoint", "run_conf"):
+        "the run config a checkpoint stores: its memory setting and FoV when the caller gives none (absent in "
+        "checkpoints made outside a run)",
     ("findview_baselines/evaluation/evaluate.py", "apply_checkpoint_config", "run_conf"):
         "the run config a checkpoint stores (sim, agent sections; absent in checkpoints made outside a run)",
     ("findview_baselines/evaluation/harness.py", "run_episodes", "agent"):
