@@ -72,6 +72,38 @@ def test_memory_features_after_a_turn_and_a_climb() -> None:
         memory.memory_features(ids, 0)
 
 
+def test_running_column_counts_match_the_visit_grid() -> None:
+    """The per-column counts that memory_features reads are kept in step with the visit grid through every way a
+    visit is written: arrivals, blocked moves (here at a pitch limit of 3 steps), whole-row marks, resets and a
+    resumed state. Expected: for every row r and column y, the number of rows below r with a visit there."""
+    memory = RevisitPenalty(3, penalty=1.0, max_pitch_steps=3)
+    gen = torch.Generator().manual_seed(0)
+    ids = torch.arange(3)
+    views = torch.zeros(3, 3, 2, 2, dtype=torch.uint8)
+
+    def expected(m: RevisitPenalty) -> torch.Tensor:
+        seen = (m.visits > 0).long()
+        rows = seen.shape[1]
+        return torch.stack([seen[:, :r].sum(dim=1) for r in range(rows + 1)], dim=1)
+
+    reached = 0
+    for t in range(400):
+        moving = torch.rand(3, generator=gen) < 0.8  # the rest keep their view: a blocked move
+        views = views + moving[:, None, None, None].to(torch.uint8)
+        memory.arrive(ids, views)
+        reached = max(reached, int(memory.pitch.abs().max()))
+        memory.moved(ids, torch.randint(0, 4, (3,), generator=gen))
+        if t % 97 == 50:
+            memory.mark_row_seen(torch.tensor([t % 3]))
+        if t % 131 == 130:
+            memory.reset(torch.tensor([(t + 1) % 3]))
+    assert int(memory.visits.sum()) > 400 and reached == 3  # the limit was pressed
+    assert torch.equal(memory.seen_below.long(), expected(memory))
+    resumed = RevisitPenalty(3, penalty=1.0, max_pitch_steps=3)
+    resumed.load_state_dict(memory.state_dict())
+    assert torch.equal(resumed.seen_below, memory.seen_below)
+
+
 def test_arrive_then_penalise_is_adjust() -> None:
     """The split calls a memory-reading policy makes give the logits and counts of the one ``adjust`` call."""
     a, b = RevisitPenalty(3, penalty=2.0), RevisitPenalty(3, penalty=2.0)

@@ -26,7 +26,9 @@ the policy acts again. A forced move that is blocked (the pitch limit) skips to 
 ``max_pitch_steps`` end the search. ``STOP`` still wins wherever it is the policy's argmax.
 
 Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at
-1 degree) on the policy's device; every operation is batched over the slots (no Python loop over environments).
+1 degree) on the policy's device, beside a running per-column count of the seen cells below each row (the same
+size), so the band sums of :meth:`RevisitPenalty.memory_features` are a few gathers, not a pass over the grid;
+every operation is batched over the slots (no Python loop over environments).
 """
 
 from __future__ import annotations
@@ -97,6 +99,9 @@ class RevisitPenalty:
         self.max_pitch = int(max_pitch_steps if max_pitch_steps is not None else 180 // int(step_deg))
         n = int(num_envs)
         self.visits = torch.zeros((n, 2 * self.max_pitch + 1, self.yaw_cells), dtype=torch.int16, device=self.device)
+        # seen_below[k, r, y]: cells of column y with a visit in rows [0, r) (r = 0 .. rows), kept in step with visits
+        self.seen_below = torch.zeros((n, self.visits.shape[1] + 1, self.yaw_cells), dtype=torch.int16, device=self.device)
+        self._row_ids = torch.arange(self.visits.shape[1] + 1, device=self.device)
         self.pitch = torch.zeros(n, dtype=torch.long, device=self.device)  # offset in steps, 0 at the start
         self.yaw = torch.zeros(n, dtype=torch.long, device=self.device)  # offset in steps, in [0, yaw_cells)
         self.last_move = torch.full((n,), -1, dtype=torch.long, device=self.device)  # -1: none pending
@@ -113,7 +118,8 @@ class RevisitPenalty:
     def reset(self, env_ids: torch.Tensor) -> None:
         """Slots ``env_ids`` (long tensor) start a new episode at offset (0, 0) with no visits."""
         ids = env_ids.to(self.device)
-        self.visits[ids] = 0.0
+        self.visits[ids] = 0
+        self.seen_below[ids] = 0
         self.pitch[ids] = 0
         self.yaw[ids] = 0
         self.last_move[ids] = -1
@@ -128,6 +134,20 @@ class RevisitPenalty:
         ids = env_ids.to(self.device)
         rows = self.pitch[ids] + self.max_pitch
         self.visits[ids, rows] = torch.clamp(self.visits[ids, rows], min=1)
+        self._recount(ids)
+
+    def _recount(self, ids: torch.Tensor) -> None:
+        """Rebuild :attr:`seen_below` of slots ``ids`` from their visit counts (after a whole-row or bulk write)."""
+        seen = (self.visits[ids] > 0).to(torch.int16)
+        self.seen_below[ids] = torch.nn.functional.pad(seen.cumsum(dim=1, dtype=torch.int16), (0, 0, 1, 0))
+
+    def _visit(self, slots: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> None:
+        """Count one visit of cell ``(rows, cols)`` (grid indices) for each of ``slots`` (three ``(M,)`` long
+        tensors, distinct slots); a cell seen for the first time adds one to its column's counts above it."""
+        first = self.visits[slots, rows, cols] == 0
+        self.visits[slots, rows, cols] += 1
+        above = (self._row_ids[None, :] > rows[:, None]) & first[:, None]  # (M, rows + 1)
+        self.seen_below[slots, :, cols] += above.to(torch.int16)
 
     def _destinations(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pitch row and yaw column of each move's destination: two ``(K, 4)`` long tensors."""
@@ -158,7 +178,7 @@ class RevisitPenalty:
         ``(K, 3, H, W)`` shows a blocked one) and count the visit. Call once per step, before :meth:`penalise`."""
         idx = idx.to(self.device)
         self._settle(idx, view.to(self.device))
-        self.visits[idx, self.pitch[idx] + self.max_pitch, self.yaw[idx]] += 1
+        self._visit(idx, self.pitch[idx] + self.max_pitch, self.yaw[idx])
 
     def penalise(self, idx: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
         """The logits ``(K, 5)`` of slots ``idx`` after their :meth:`arrive`, penalised as :meth:`adjust` says."""
@@ -197,16 +217,12 @@ class RevisitPenalty:
             raise ValueError(f"memory band must be >= 1 steps, got {band}")
         idx = idx.to(self.device)
         rows = self.pitch[idx] + self.max_pitch  # (K,) row of the current pose
-        seen = self.visits[idx] > 0  # (K, R, Y)
-        # seen cells per column in rows [0, r) for every r: one cumulative sum, then each band is a difference
-        upto = torch.nn.functional.pad(seen.to(torch.int16).cumsum(dim=1, dtype=torch.int16), (0, 0, 1, 0))  # (K, R+1, Y)
-        last = seen.shape[1]
+        last = self.visits.shape[1]
 
         def cells(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:  # seen columns in rows [lo, hi]
             lo = lo.clamp(0, last)
             hi = (hi + 1).clamp(0, last)
-            k = torch.arange(len(idx), device=self.device)
-            return ((upto[k, hi] - upto[k, lo]) > 0).sum(dim=-1)  # (K,)
+            return ((self.seen_below[idx, hi] - self.seen_below[idx, lo]) > 0).sum(dim=-1)  # (K,)
 
         here = cells(rows - band, rows + band)
         cover = self.cover_cells
@@ -260,7 +276,7 @@ class RevisitPenalty:
             b = idx[blocked]
             p = (self.pitch[b] + step[blocked, 0]).clamp(-self.max_pitch, self.max_pitch) + self.max_pitch
             y = (self.yaw[b] + step[blocked, 1]) % self.yaw_cells
-            self.visits[b, p, y] += 1
+            self._visit(b, p, y)
         step = step * go[:, None].long()
         self.pitch[idx] = (self.pitch[idx] + step[:, 0]).clamp(-self.max_pitch, self.max_pitch)
         self.yaw[idx] = (self.yaw[idx] + step[:, 1]) % self.yaw_cells
@@ -287,6 +303,7 @@ class RevisitPenalty:
                 f"{tuple(self.visits.shape)} (slots, pitch cells, yaw cells)"
             )
         self.visits.copy_(state["visits"])
+        self._recount(torch.arange(self.visits.shape[0], device=self.device))
         self.pitch.copy_(state["pitch"])
         self.yaw.copy_(state["yaw"])
         self.last_move.copy_(state["last_move"])
