@@ -172,10 +172,6 @@ def checkpoint_payload(
     }
 
 
-#: the policy module that holds the parameters of each growable signature field (rl/signature.py GROWABLE_FIELDS)
-GROWN_MODULES = {"memory_inputs": "memory_proj"}
-
-
 def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool = False,
                 key: str | None = None) -> dict[str, Any]:
     """Load the weights of a checkpoint into ``policy`` after checking its signature; returns the checkpoint.
@@ -187,7 +183,7 @@ def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool
         CheckpointNotFound, CheckpointError: no such file, not a checkpoint, or one whose model differs
             (naming the file and the first differing model field).
     """
-    from findview_baselines.rl.signature import check_signature
+    from findview_baselines.rl.signature import GROWABLE_FIELDS, check_signature
 
     state = load_checkpoint(path, map_location=next(policy.parameters()).device, key=key)
     label = f"{key}={path}" if key else str(path)
@@ -197,7 +193,7 @@ def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool
         raise CheckpointError(f"{label}: {err} (use a checkpoint of the same agent.variant / agent.hidden_size / "
                               f"view size)") from None
     # a GROWABLE_FIELDS part the saved model lacks keeps its zero start (init_from only); anything else must fit
-    grown = tuple(f"{module}." for field, module in GROWN_MODULES.items()
+    grown = tuple(f"{module}." for field, module in GROWABLE_FIELDS.items()
                   if transfer and not state["signature"].get(field) and policy.model_signature().get(field))
     try:
         missing, unexpected = policy.load_state_dict(state["policy"], strict=not grown)

@@ -81,7 +81,7 @@ from findview_baselines.rl.dagger_config import LABEL_MODES, DAggerConfig, beta_
 from findview_baselines.rl.dagger_loss import set_nll
 from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.scheduler import DifficultyScheduler
-from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
+from findview_baselines.rl.search_memory import SEARCH_ROWS, make_revisit_penalty, memory_band
 from findview_baselines.rl.sequence_buffer import SequenceBuffer
 from findview_baselines.rl.storage import AUX_SIZE
 from findview_baselines.rl.trainer_base import TIMING_KEYS, Trainer, never, no_distribution_validation
@@ -110,14 +110,18 @@ def search_row_moves(memory: torch.Tensor, offset: torch.Tensor, side: torch.Ten
     rows are done passes to the next; when every ring is done there is no move.
     """
     step = int(band) + 1
-    row = torch.full_like(offset, 2**30)  # no row left
-    for ring, (up, down) in reversed(list(enumerate(((2, 3), (4, 5)), start=1))):  # the nearest ring decides last
-        done_up, done_down = memory[:, up] > 0.5, memory[:, down] > 0.5
-        first = side * ring * step
-        target = torch.where(~done_up & ~done_down, first, torch.where(done_up, -ring * step, ring * step))
-        row = torch.where(done_up & done_down, row, target)
+    column = {k: 2 + i for i, k in enumerate(SEARCH_ROWS)}  # memory_features' "done" column of each search row
+    rings = sorted({abs(k) for k in SEARCH_ROWS})
+    row = torch.zeros_like(offset)
+    left = torch.zeros_like(offset, dtype=torch.bool)  # a row not looked around is left
+    for ring in reversed(rings):  # the nearest ring decides last
+        done_up, done_down = memory[:, column[ring]] > 0.5, memory[:, column[-ring]] > 0.5
+        target = torch.where(~done_up & ~done_down, side * ring * step, torch.where(done_up, -ring * step, ring * step))
+        open_ring = ~(done_up & done_down)
+        row = torch.where(open_ring, target, row)
+        left = left | open_ring
     move = torch.where(row > offset, int(Action.UP), int(Action.DOWN))
-    return torch.where((row == 2**30) | (row == offset), torch.full_like(move, -1), move)
+    return torch.where(~left | (row == offset), torch.full_like(move, -1), move)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -248,41 +252,13 @@ class DAggerTrainer(Trainer):
             masks[t].copy_(self.masks)
             if t % cfg.seq_len == 0:
                 hiddens[t // cfg.seq_len].copy_(self.hidden * self.masks[:, None])
-            row_done = None
-            if memory is not None:  # the memory sees this step's arrival before the policy reads it
+            if self.revisits is not None:  # the memory sees this step's arrival before the policy reads it
                 self._memory_arrive()
+            if memory is not None:
                 memory[t] = self.revisits.memory_features(self._all_slots, self.memory_band)
-                row_done = memory[t, :, 0] > 0.5 if cfg.search_prior == "pan" else None
-            towards = row_done if cfg.row_done_labels == "target" else None  # the prior's own "row done" labels
-            oracle = oracle_actions_for(
-                env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards, cfg.row_done_band
-            ).to(dev)
-            if cfg.labels == "set":
-                label = optimal_action_mask_for(
-                    env, cfg.search_prior, cfg.search_pitch_band, towards, cfg.row_done_band
-                ).to(dev)
-            else:
-                label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
-            leave = None
-            if row_done is not None and cfg.row_done_labels == "rows":  # to the next search row instead
-                start_pitch = env.pitch.to(dev) - self.revisits.pitch.to(dev)  # the dead-reckoned start row
-                side = torch.where(env.target_pitch.to(dev) >= start_pitch, 1, -1)
-                move = search_row_moves(memory[t], self.revisits.pitch.to(dev), side, self.memory_band)
-                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov)).to(dev)
-                leave = row_done & ~overlap & (move >= 0)
-                oracle = torch.where(leave, move, oracle)
-                label = torch.where(leave[:, None], nn.functional.one_hot(move.clamp(min=0), NUM_ACTIONS).bool(), label)
+            oracle, label, searching = self._labels(None if memory is None else memory[t])
             labels[t].copy_(label)
-            if cfg.search_weight != 1.0:
-                fov = float(env.sim.fov)
-                overlap = overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov).to(dev)
-                searching = ~overlap
-                if leave is not None:  # the steps that leave a finished row weigh fully
-                    searching = searching & ~leave
-                elif row_done is not None:
-                    far = (env.target_pitch - env.pitch).abs().to(dev) > cfg.row_done_band * fov
-                    searching = searching & ~(row_done & far)
-                weights[t].masked_fill_(searching, cfg.search_weight)
+            weights[t].masked_fill_(searching, cfg.search_weight)
             if aux is not None:
                 aux[t].copy_(rotation_labels(env).to(dev))
             t0 = time.perf_counter()
@@ -320,13 +296,42 @@ class DAggerTrainer(Trainer):
         stats = {"oracle_share": executed_oracle / (T * n), "rollout_agreement": float(agree) / (T * n)}
         return records, stats
 
+    def _labels(self, memory: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """This step's oracle: the action to execute (N,) long, the label set (N, NUM_ACTIONS) bool, and the steps
+        that weigh ``search_weight`` (N,) bool: searches with no overlap of view and target, except the steps that
+        leave a finished row. ``memory``: this step's (N, memory_inputs) features, for a policy that reads them."""
+        cfg, env, dev = self.cfg, self.env, self.device
+        fov = float(env.sim.fov)
+        row_done = memory[:, 0] > 0.5 if memory is not None and cfg.search_prior == "pan" else None
+        towards = row_done if cfg.row_done_labels == "target" else None  # the prior's own "row done" labels
+        oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards,
+                                    cfg.row_done_band).to(dev)
+        if cfg.labels == "set":
+            label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, towards,
+                                            cfg.row_done_band).to(dev)
+        else:
+            label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
+        searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov).to(dev)
+        if row_done is None:
+            return oracle, label, searching
+        if cfg.row_done_labels == "rows":  # to the next search row instead, and those steps weigh fully
+            start_pitch = env.pitch.to(dev) - self.revisits.pitch.to(dev)  # the dead-reckoned start row
+            side = torch.where(env.target_pitch.to(dev) >= start_pitch, 1, -1)
+            move = search_row_moves(memory, self.revisits.pitch.to(dev), side, self.memory_band)
+            leave = row_done & searching & (move >= 0)
+            oracle = torch.where(leave, move, oracle)
+            label = torch.where(leave[:, None], nn.functional.one_hot(move.clamp(min=0), NUM_ACTIONS).bool(), label)
+        else:  # the steps towards the target's pitch from a finished row weigh fully
+            leave = row_done & ((env.target_pitch - env.pitch).abs().to(dev) > cfg.row_done_band * fov)
+        return oracle, label, searching & ~leave
+
     def _memory_arrive(self) -> None:
-        """The search memory: slots whose episode starts now forget (``memory_warm_start`` of them then count their
-        start row as looked around), then every slot arrives at its pose."""
+        """The search memory: slots whose episode starts now forget (with memory inputs, ``memory_warm_start`` of
+        them then count their start row as looked around), then every slot arrives at its pose."""
         starts = torch.nonzero(self.masks == 0).flatten()
         if len(starts):
             self.revisits.reset(starts)
-            if self.cfg.memory_warm_start > 0:  # some episodes start as if the start row had been looked around
+            if self.memory_band and self.cfg.memory_warm_start > 0:  # some episodes start as if the start row had been looked around
                 warm = torch.rand(len(starts), generator=self.mix_generator) < self.cfg.memory_warm_start
                 if bool(warm.any()):
                     self.revisits.mark_row_seen(starts[warm.to(starts.device)])
@@ -335,18 +340,13 @@ class DAggerTrainer(Trainer):
     def _learner_step(
         self, obs: Mapping[str, torch.Tensor], fixed: torch.Tensor | None = None, memory: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The learner's actions, under its search memory when it has one (as ``PPOAgent`` acts at evaluation),
-        and its new GRU state; ``fixed``: the observation's fixed encoder inputs, when cached; ``memory``: the
-        memory's features (N, memory_inputs), after :meth:`_memory_arrive`, for a policy that reads them."""
+        """The learner's actions, under its search memory when it has one (after :meth:`_memory_arrive`, as
+        ``PPOAgent`` acts at evaluation), and its new GRU state; ``fixed``: the observation's fixed encoder inputs,
+        when cached; ``memory``: the memory's features (N, memory_inputs), for a policy that reads them."""
         dist, _, new_hidden, _ = self.policy.forward_features(obs, self.hidden, self.masks, fixed=fixed, memory=memory)
         logits = dist.logits
-        if memory is not None:
+        if self.revisits is not None:
             logits = self.revisits.penalise(self._all_slots, logits)
-        elif self.revisits is not None:
-            starts = torch.nonzero(self.masks == 0).flatten()
-            if len(starts):
-                self.revisits.reset(starts)
-            logits = self.revisits.adjust(self._all_slots, obs["view"], logits)
         if self.cfg.sample_actions:
             return torch.distributions.Categorical(logits=logits).sample(), new_hidden
         return logits.argmax(dim=-1), new_hidden
