@@ -40,6 +40,9 @@ def error_of(config_name: str, overrides: list[str]) -> str:
         ("train", ["+experiment=imitate"]),
         ("train", ["+experiment=reinforce"]),
         ("train", ["+experiment=robust"]),
+        ("train", ["+experiment=robust_focus"]),
+        ("train", ["+experiment=robust_finetune"]),
+        ("train", ["+experiment=robust_memory"]),
         ("train", ["sim=fov60", "corruption.name=weather", "corruption.severity=[1,3]"]),
         ("eval", []),
         *[("eval", [f"agent={a}"]) for a in ("random", "oracle", "orb", "sift", "rotation", "ppo")],
@@ -50,6 +53,19 @@ def error_of(config_name: str, overrides: list[str]) -> str:
 )
 def test_every_shipped_config_composes_and_validates(config_name: str, overrides: list[str]) -> None:
     assert error_of(config_name, overrides) == ""
+
+
+@pytest.mark.parametrize("overrides", [[], ["dataset=sun360_indoor", "sim.fov=60"]])
+def test_robust_memory_starts_from_where_the_robust_preset_writes_its_best_checkpoint(overrides: list[str]) -> None:
+    """The two stages of the shipped robust agents chain with the same overrides: stage 2's default init_from is
+    stage 1's run folder (the robust preset's hydra.run.dir) + checkpoints/best.pth."""
+    stage1 = compose_config("train", ["+experiment=robust", *overrides], return_hydra_config=True)
+    stage2 = compose_config("train", ["+experiment=robust_memory", *overrides])
+    run_dir = stage1.hydra.run.dir
+    assert stage2.init_from == f"{run_dir}/checkpoints/best.pth"
+    assert (stage2.agent.variant, stage2.agent.hidden_size) == (stage1.agent.variant, stage1.agent.hidden_size)
+    assert stage2.agent.memory_inputs and not stage1.agent.memory_inputs
+    assert stage2.scheduler.start_level == 3  # hard episodes from the first update, no curriculum restart
 
 
 @pytest.mark.parametrize(
