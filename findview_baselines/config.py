@@ -267,6 +267,11 @@ class PPOAgentConfig:
     stop_prob: Optional[float] = None
     """At validation / evaluation: STOP whenever the policy gives STOP at least this probability, even when a move
     has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
+    stop_by: int = 0
+    """At evaluation, with the search memory on: the step by which the agent stops (set it to T, task.max_steps).
+    A slot that has not stopped when the steps left are just enough walks back to the (dead-reckoned) pose where the
+    policy's STOP probability was highest and stops there, instead of running out of steps wherever it is; episodes
+    the agent ends by itself are unchanged. 0 = off. See findview_baselines/agents/give_up.py."""
     fov: float = 90.0
     """Horizontal field of view of the views, degrees (the refinement's pixels-to-degrees; configs/agent/ppo.yaml
     sets it to ${sim.fov})."""
@@ -295,6 +300,7 @@ class PPOAgentConfig:
         check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
         check(self.stop_prob is None or 0 < self.stop_prob <= 1, "agent.stop_prob", self.stop_prob,
               "null or a probability in (0, 1]")
+        check(self.stop_by >= 0, "agent.stop_by", self.stop_by, "0 (off) or a step number (T)")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
         check(not self.memory_inputs or self.revisit_penalty > 0, "agent.revisit_penalty", self.revisit_penalty,

@@ -20,6 +20,9 @@
   A network built with ``memory_inputs`` (in its checkpoint signature) also reads that memory's features each step
   (:meth:`~findview_baselines.rl.search_memory.RevisitPenalty.memory_features`: has it looked around its row?), and
   needs the memory on and the views' ``fov``.
+- ``stop_by > 0`` (needs the search memory; set it to ``T``): a slot that has not stopped when the steps left are
+  just enough walks back to the dead-reckoned pose where the policy's STOP probability was highest and stops
+  there (:mod:`findview_baselines.agents.give_up`), instead of running out of steps wherever it is.
 
 Checkpoints are read with ``torch.load(..., weights_only=True)``; the layout is the one written by the
 trainer (``{"signature": {...}, "policy": state_dict, ...}``, see ``findview_baselines.rl.checkpoint``).
@@ -40,6 +43,7 @@ import torch
 from findview.episode import Episode
 from findview.runtime import scoped
 from findview_baselines.agents.base import STOP, Agent, episode_rng
+from findview_baselines.agents.give_up import GiveUp
 from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.observations import area_downsample, downsample_factor
 from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
@@ -79,6 +83,9 @@ class PPOAgent(Agent):
             (``None``: the argmax, or the sample, decides).
         fov: the views' horizontal field of view, degrees; required when the policy reads its search memory
             (``memory_inputs``: the memory's row band is half a FoV, :func:`~findview_baselines.rl.search_memory.memory_band`).
+        stop_by: the step by which a slot stops (``T``): when the steps left are just enough, a slot that has not
+            stopped walks back to its most stop-like pose and stops (0: off; needs ``revisit_penalty > 0``, the
+            memory's dead reckoning).
     """
 
     name = "ppo"
@@ -95,6 +102,7 @@ class PPOAgent(Agent):
         refiner: StopRefiner | None = None,
         stop_prob: float | None = None,
         fov: float | None = None,
+        stop_by: int = 0,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -116,6 +124,17 @@ class PPOAgent(Agent):
                     f"revisit_penalty > 0 (got {revisit_penalty}) and the views' fov (got {fov})"
                 )
             self.memory_band = memory_band(float(fov))
+        self.give_up: GiveUp | None = None
+        if int(stop_by) < 0:
+            raise ValueError(f"stop_by must be >= 0 steps (0 = off), got {stop_by}")
+        if int(stop_by) > 0:
+            if self.revisits is None:
+                raise ValueError(
+                    f"stop_by={stop_by} walks back to a dead-reckoned pose: it needs the search memory "
+                    f"(revisit_penalty > 0, got {revisit_penalty})"
+                )
+            margin = 1 + (refiner.max_moves if refiner is not None else 0)  # the refinement's moves after the walk
+            self.give_up = GiveUp(self.num_envs, int(stop_by), self.revisits.yaw_cells, self.device, margin=margin)
 
     # construction --------------------------------------------------------------------------------
     @classmethod
@@ -133,6 +152,7 @@ class PPOAgent(Agent):
         refiner: StopRefiner | None = None,
         stop_prob: float | None = None,
         fov: float | None = None,
+        stop_by: int = 0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -174,7 +194,10 @@ class PPOAgent(Agent):
             policy.load_state_dict(state["policy"])
         except RuntimeError as err:
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
-        return cls(policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov)
+        return cls(
+            policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov,
+            stop_by,
+        )
 
     @classmethod
     def from_config(
@@ -198,7 +221,7 @@ class PPOAgent(Agent):
             checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
             refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
-            stop_prob=cfg.stop_prob, fov=cfg.fov,
+            stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -212,6 +235,8 @@ class PPOAgent(Agent):
             self.revisits.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
         if self.refiner is not None:
             self.refiner.reset(ids)
+        if self.give_up is not None:
+            self.give_up.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
         for i, ep in zip(ids, episodes):
             self.done[i] = ep is None
             self._rngs[i] = episode_rng(self.seed, ep, self._fallback)
@@ -231,12 +256,21 @@ class PPOAgent(Agent):
         actions = torch.full((self.num_envs,), STOP, dtype=torch.long, device=self.device)
         work = np.flatnonzero(~self.done)
         refining = self.refiner.refining.numpy()[work] if self.refiner is not None else np.zeros(len(work), bool)
-        asked = work[~refining]  # the slots the policy decides for (a refining slot no longer asks it)
+        walking = self.give_up.returning.cpu().numpy()[work] & ~refining if self.give_up is not None else np.zeros(len(work), bool)
+        asked = work[~refining & ~walking]  # the slots the policy decides for (refining and walking slots no longer ask it)
         stops = np.zeros(0, dtype=np.int64)
         if len(asked):
             a_t = self._policy_actions(asked, view, target)
             actions[torch.as_tensor(asked, device=self.device)] = a_t
             stops = asked[(a_t == STOP).cpu().numpy()]
+        if walking.any():  # walking back to the best pose (stop_by): the memory keeps the pose, no network
+            walkers = work[walking]
+            idx = torch.as_tensor(walkers, device=self.device)
+            self.revisits.arrive(idx, view.to(self.device)[idx])
+            a_w = self.give_up.walk(idx, self.revisits.pitch[idx], self.revisits.yaw[idx])
+            self.revisits.moved(idx, a_w)
+            actions[idx] = a_w
+            stops = np.concatenate([stops, walkers[(a_w == STOP).cpu().numpy()]])
         if self.refiner is not None:
             check = np.concatenate([work[refining], stops])
             if len(check):
@@ -280,6 +314,12 @@ class PPOAgent(Agent):
             a_t = logits.argmax(dim=-1)
         if self.stop_prob is not None:  # the policy's own STOP probability, before the search memory
             a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
+        if self.give_up is not None:  # remember the most stop-like pose; walk back to it when the steps left are just enough
+            pitch, yaw = self.revisits.pitch[idx], self.revisits.yaw[idx]
+            late = self.give_up.observe(idx, dist.probs[:, STOP], pitch, yaw) & (a_t != STOP)
+            if bool(late.any()):
+                a_t = a_t.clone()
+                a_t[late] = self.give_up.walk(idx[late], pitch[late], yaw[late])
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t

@@ -1,0 +1,112 @@
+"""An anytime answer for a learned agent that has not stopped: go back to its most target-like view and stop.
+
+A learned agent whose stop head hesitates (a target under fog, spatter or noise it never becomes sure of) walks
+until the episode's step limit ``T`` ends it wherever it happens to be. Its own stop head has usually come
+closest to stopping near the target. :class:`GiveUp` remembers, per slot, the pose where the policy's STOP
+probability was highest so far (poses dead-reckoned by the search memory,
+:class:`~findview_baselines.rl.search_memory.RevisitPenalty`: offsets in 1-step moves from the start pose),
+and when the steps left before ``stop_by`` (set it to ``T``) are just enough for the walk back (``|dpitch| +
+|dyaw|`` moves, plus ``margin`` for the stop refinement's moves), it takes the slot back there, pitch first, then
+yaw the short way round, and answers STOP (which the stop refinement, when on, checks as any other stop).
+A slot whose best STOP probability is below ``min_prob`` does not walk back: a stop head that was never even a
+little sure has no view worth returning to (on the robust agent's corrupted val episodes, best probabilities
+of 0.08 and more led back to the target, 0.05 and less to views 40-190 degrees away).
+
+It changes nothing but the end of episodes that would otherwise run out of steps: until its last walk home the
+agent acts as without it.
+
+Batched over slots, on any device; the walk is capped at ``max_walk`` moves (a dead reckoning that went wrong
+in a textureless region cannot keep a slot walking).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
+
+__all__ = ["GiveUp"]
+
+
+class GiveUp:
+    """Per-slot best pose and the walk back to it.
+
+    Args:
+        num_envs: slots ``N``.
+        stop_by: the step by which every slot answers STOP (``T``, ``>= 1``).
+        yaw_cells: yaw cells of a full turn (360 at 1 degree per step).
+        device: where the state lives (the policy's device).
+        margin: steps kept free after the walk's STOP (the stop refinement's moves, plus one).
+        min_prob: the least best STOP probability worth walking back to (``[0, 1]``).
+        max_walk: most moves of the walk back before the slot stops where it is.
+    """
+
+    def __init__(self, num_envs: int, stop_by: int, yaw_cells: int, device: str | torch.device = "cpu",
+                 margin: int = 1, min_prob: float = 0.1, max_walk: int = 400) -> None:
+        if int(stop_by) < 1:
+            raise ValueError(f"stop_by must be >= 1 steps, got {stop_by}")
+        if int(max_walk) < 1 or int(margin) < 0:
+            raise ValueError(f"need max_walk >= 1 moves and margin >= 0 steps, got {max_walk}, {margin}")
+        if not 0.0 <= float(min_prob) <= 1.0:
+            raise ValueError(f"min_prob must be a probability in [0, 1], got {min_prob}")
+        self.min_prob = float(min_prob)
+        self.stop_by, self.yaw_cells, self.max_walk, self.margin = int(stop_by), int(yaw_cells), int(max_walk), int(margin)
+        self.device = torch.device(device)
+        n = int(num_envs)
+        self.steps = torch.zeros(n, dtype=torch.long, device=self.device)  # acts since the episode started
+        self.best = torch.full((n,), -1.0, device=self.device)  # highest STOP probability seen
+        self.best_pitch = torch.zeros(n, dtype=torch.long, device=self.device)  # its dead-reckoned pose, steps
+        self.best_yaw = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.returning = torch.zeros(n, dtype=torch.bool, device=self.device)
+        self.walked = torch.zeros(n, dtype=torch.long, device=self.device)
+
+    def reset(self, env_ids: torch.Tensor) -> None:
+        """Slots ``env_ids`` (long tensor) start a new episode."""
+        ids = env_ids.to(self.device)
+        self.steps[ids] = 0
+        self.best[ids] = -1.0
+        self.best_pitch[ids] = 0
+        self.best_yaw[ids] = 0
+        self.returning[ids] = False
+        self.walked[ids] = 0
+
+    def observe(self, idx: torch.Tensor, stop_prob: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+        """Slots ``idx`` ``(K,)`` asked the policy at poses ``(pitch, yaw)`` (``(K,)`` offsets, steps) and got
+        ``stop_prob`` ``(K,)``; count the step, keep the best pose. Returns ``(K,)`` bool: the slots that give up
+        now (their best STOP probability is at least ``min_prob`` and the walk back and its STOP need the steps left
+        before ``stop_by``; the caller starts their walk with :meth:`walk`)."""
+        idx = idx.to(self.device)
+        p = stop_prob.to(self.device, torch.float32)
+        better = p > self.best[idx]
+        self.best[idx] = torch.where(better, p, self.best[idx])
+        self.best_pitch[idx] = torch.where(better, pitch.to(self.device), self.best_pitch[idx])
+        self.best_yaw[idx] = torch.where(better, yaw.to(self.device), self.best_yaw[idx])
+        self.steps[idx] += 1
+        # this act is step `steps`; walking d moves from here, the walk's STOP is step steps + d
+        due = self.steps[idx] + self.distance(idx, pitch, yaw) + self.margin >= self.stop_by
+        return due & (self.best[idx] >= self.min_prob)
+
+    def _delta(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pitch and yaw steps ``(K,)`` from ``(pitch, yaw)`` to the best pose (yaw the short way round)."""
+        dp = self.best_pitch[idx] - pitch.to(self.device)
+        dy = (self.best_yaw[idx] - yaw.to(self.device)) % self.yaw_cells
+        return dp, torch.where(dy > self.yaw_cells // 2, dy - self.yaw_cells, dy)
+
+    def distance(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+        """Moves ``(K,)`` of the walk from ``(pitch, yaw)`` back to the best pose of slots ``idx``."""
+        dp, dy = self._delta(idx.to(self.device), pitch, yaw)
+        return dp.abs() + dy.abs()
+
+    def walk(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+        """The next move ``(K,)`` of slots ``idx`` on their walk back from poses ``(pitch, yaw)`` (``(K,)``
+        offsets, steps): UP / DOWN until the best pose's pitch, then LEFT / RIGHT the short way round, STOP there
+        (or after ``max_walk`` moves); a slot that answers STOP leaves the walk."""
+        idx = idx.to(self.device)
+        dp, dy = self._delta(idx, pitch, yaw)
+        full = lambda a: torch.full_like(dp, a)  # noqa: E731
+        move = torch.where(dp > 0, full(UP), torch.where(dp < 0, full(DOWN),
+                           torch.where(dy > 0, full(RIGHT), torch.where(dy < 0, full(LEFT), full(STOP)))))
+        move = torch.where(self.walked[idx] >= self.max_walk, full(STOP), move)
+        self.walked[idx] += (move != STOP).long()
+        self.returning[idx] = move != STOP
+        return move

@@ -1,0 +1,123 @@
+"""The learned agent's anytime stop (``agent.stop_by``, findview_baselines/agents/give_up.py), against hand-worked
+walks on a toy 1-degree world."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from findview.episode import Episode
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
+from findview_baselines.agents.give_up import GiveUp
+
+
+def test_walk_goes_pitch_first_then_yaw_the_short_way_round_and_stops():
+    g = GiveUp(1, stop_by=100, yaw_cells=360)
+    idx = torch.tensor([0])
+    g.observe(idx, torch.tensor([0.5]), torch.tensor([3]), torch.tensor([358]))  # best pose: pitch +3, yaw -2
+    pitch, yaw, moves = 0, 5, []
+    for _ in range(20):
+        a = int(g.walk(idx, torch.tensor([pitch]), torch.tensor([yaw]))[0])
+        moves.append(a)
+        if a == STOP:
+            break
+        pitch += {UP: 1, DOWN: -1}.get(a, 0)
+        yaw = (yaw + {RIGHT: 1, LEFT: -1}.get(a, 0)) % 360
+    # from (0, 5) to (3, 358): 3 x UP, then 7 x LEFT through yaw 0 (not 353 x RIGHT), then STOP
+    assert moves == [UP] * 3 + [LEFT] * 7 + [STOP]
+    assert not bool(g.returning[0])
+
+
+def test_observe_gives_up_when_the_steps_left_just_cover_the_walk():
+    """Best pose 10 moves away, margin 5: the walk's STOP lands on step stop_by exactly when the slot gives up at
+    step stop_by - 10 - 5 + ... : at act s, s + 10 + 5 >= 100 first holds at s = 85."""
+    g = GiveUp(1, stop_by=100, yaw_cells=360, margin=5)
+    idx = torch.tensor([0])
+    g.observe(idx, torch.tensor([0.9]), torch.tensor([0]), torch.tensor([0]))  # act 1: best pose at the start
+    due_at = None
+    for s in range(2, 100):
+        # the agent stands 10 yaw steps to the right of its best pose, with a lower STOP probability
+        if bool(g.observe(idx, torch.tensor([0.01]), torch.tensor([0]), torch.tensor([10]))[0]):
+            due_at = s
+            break
+    assert due_at == 85
+    assert int(g.distance(idx, torch.tensor([0]), torch.tensor([10]))[0]) == 10
+
+
+def test_a_stop_head_never_sure_enough_does_not_walk_back():
+    g = GiveUp(2, stop_by=10, yaw_cells=360, min_prob=0.1)
+    idx = torch.tensor([0, 1])
+    due = None
+    for _ in range(12):
+        due = g.observe(idx, torch.tensor([0.09, 0.11]), torch.tensor([0, 0]), torch.tensor([0, 0]))
+    assert due.tolist() == [False, True]
+    with pytest.raises(ValueError, match="min_prob"):
+        GiveUp(1, stop_by=10, yaw_cells=360, min_prob=1.5)
+    with pytest.raises(ValueError, match="stop_by"):
+        GiveUp(1, stop_by=0, yaw_cells=360)
+
+
+class RingPolicy(torch.nn.Module):
+    """A stand-in network for the learned agent: it always prefers RIGHT (with the search memory it circles its row,
+    then moves on) and never stops by itself; where the view's pixels encode pitch 0 and yaw ``sure_yaw`` its STOP
+    probability is ``sure`` (0.001 elsewhere)."""
+
+    height = width = 8
+    memory_inputs = 0
+    heavy = False
+
+    def __init__(self, sure_yaw: int, sure: float) -> None:
+        super().__init__()
+        self.sure_yaw, self.sure = sure_yaw, sure
+
+    def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
+        return torch.zeros(num_envs, 1, device=device)
+
+    def forward(self, obs, hidden, masks, memory=None):  # noqa: ANN001, ANN201
+        yaw = obs["view"][:, 0, 0, 0].long() + 256 * obs["view"][:, 1, 0, 0].long()
+        pitch = obs["view"][:, 2, 0, 0].long() - 128
+        stop = torch.where((yaw == self.sure_yaw) & (pitch == 0), torch.tensor(self.sure), torch.tensor(0.001))
+        right = 1.0 - stop - 0.003
+        probs = torch.stack([torch.full_like(stop, 0.001)] * 3 + [right, stop], dim=1)
+        return torch.distributions.Categorical(probs=probs), torch.zeros(len(yaw)), hidden
+
+
+def run_ring(stop_by: int, sure: float, T: int = 1000) -> tuple[list[int], tuple[int, int], int]:
+    """The agent on a toy world of 1-degree poses (the view encodes pitch and yaw) from (0, 0) for up to T steps:
+    its actions, final (pitch, yaw) (degrees, yaw 0..359) and the step of its STOP (0 if none)."""
+    from findview_baselines.agents.ppo_agent import PPOAgent
+
+    agent = PPOAgent(RingPolicy(sure_yaw=40, sure=sure), 1, revisit_penalty=16.0, stop_by=stop_by)
+    agent.reset([0], [Episode("e", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=1)])
+    pitch, yaw, actions = 0, 0, []
+    for step in range(1, T + 1):
+        view = torch.zeros(1, 3, 8, 8, dtype=torch.uint8)
+        view[0, 0], view[0, 1], view[0, 2] = yaw % 256, yaw // 256, pitch + 128
+        a = int(agent.act({"view": view, "target": torch.zeros_like(view)})[0])
+        actions.append(a)
+        if a == STOP:
+            return actions, (pitch, yaw), step
+        pitch += {UP: 1, DOWN: -1}.get(a, 0)
+        yaw = (yaw + {RIGHT: 1, LEFT: -1}.get(a, 0)) % 360
+    return actions, (pitch, yaw), 0
+
+
+def test_the_agent_walks_back_to_its_most_stop_like_view_by_step_T():
+    # turning right it passes (0, 40) (STOP probability 0.3, never its argmax) in its first turn, then searches
+    # on; when the walk home needs the steps left it goes back there and stops, by step T
+    actions, pose, stopped_at = run_ring(stop_by=1000, sure=0.3)
+    assert pose == (0, 40)
+    # the walk starts at the first act s with s + d + 1 >= T (d: its moves; margin 1 without the refinement), and
+    # s + d grows by 0 or 2 per act, so its STOP (act s + d) is act T - 1 or T: the whole budget was searched
+    assert stopped_at in (999, 1000)
+    assert actions[:359] == [RIGHT] * 359  # the policy's own first turn (then the memory sends it up a row)
+    # off: it circles until T; a stop head below min_prob (0.1) is not trusted either
+    assert run_ring(stop_by=0, sure=0.3)[2] == 0
+    assert run_ring(stop_by=1000, sure=0.05)[2] == 0
+
+
+def test_stop_by_needs_the_search_memory():
+    from findview_baselines.agents.ppo_agent import PPOAgent
+
+    with pytest.raises(ValueError, match="search memory"):
+        PPOAgent(RingPolicy(0, 0.3), 1, stop_by=1000)
