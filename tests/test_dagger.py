@@ -537,7 +537,7 @@ def test_cached_fixed_features_train_the_same_weights(panoramas) -> None:
 
 
 def memory_run(images, updates: int, state: dict | None = None, cover_cells: int = 6, warm: float = 0.0,
-               row_done_labels: str = "target") -> DAggerTrainer:
+               row_done_labels: str = "target", penalised: bool = False) -> DAggerTrainer:
     """A DAgger run of a policy that reads its search memory, on hard starts only, with the oracle executing every
     step and a memory that calls a row done after ``cover_cells`` yaw cells (a full turn would take 360 steps)."""
     torch.manual_seed(0)
@@ -546,7 +546,7 @@ def memory_run(images, updates: int, state: dict | None = None, cover_cells: int
     policy = Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2, memory_inputs=MEMORY_FEATURES)
     cfg = DAggerConfig(rollout_steps=16, seq_len=4, buffer_size=400, batch_sequences=3, epochs=2.0, beta_end=1.0,
                        labels="set", search_prior="pan", search_weight=0.25, row_done_band=0.0, memory_warm_start=warm,
-                       row_done_labels=row_done_labels)
+                       row_done_labels=row_done_labels, penalised_loss=penalised)
     trainer = DAggerTrainer(env, policy, cfg, total_updates=6, revisit_penalty=2.0)
     trainer.revisits.cover_cells = cover_cells
     if state is None:
@@ -592,6 +592,35 @@ def test_memory_inputs_reach_the_buffer_the_labels_and_the_resume_state(panorama
     for (name, a), b in zip(trainer.policy.state_dict().items(), resumed.policy.state_dict().values()):
         assert torch.equal(a, b), name
     assert torch.equal(trainer.buffer.memory[:n], resumed.buffer.memory[:n])
+
+
+def test_penalised_loss_keeps_the_move_penalties_and_trains_on_them(panoramas) -> None:
+    """``penalised_loss``: the buffer keeps, per step, the memory's penalty of each move (2 logit units per earlier
+    visit of its destination);
+    the rollouts are the oracle's either way (beta 1), so the labels are the same and only the loss differs; the
+    penalties resume exactly."""
+    with pytest.raises(ValueError, match="penalised_loss"):
+        DAggerTrainer(sampled_env(panoramas, 3, 32, 30, 120, seed=13), Policy(32, 32, variant="direct", hidden_size=16),
+                      DAggerConfig(penalised_loss=True), 6)
+    plain, pen = memory_run(panoramas, 3), memory_run(panoramas, 3, penalised=True)
+    n = len(pen.buffer)
+    penalty = pen.buffer.penalty[:n].flatten(0, 1)
+    assert penalty.shape == (n * 4, 4)
+    assert bool((penalty >= 0).all()) and bool((penalty % 2.0 == 0).all())
+    masks = pen.buffer.masks[:n].flatten()
+    # an episode's first step (mask 0) has a fresh memory: no penalty; every later step came from a neighbour it
+    # visited (or was blocked towards one, which counts as visited): some move costs 2 or more
+    assert bool((penalty[masks == 0] == 0).all()) and bool((masks == 0).any())
+    assert bool((penalty[masks == 1].amax(dim=1) >= 2.0).all())
+    assert torch.equal(plain.buffer.labels[:n], pen.buffer.labels[:n])
+    assert any(not torch.equal(a, b) for a, b in zip(plain.policy.state_dict().values(), pen.policy.state_dict().values()))
+    first = memory_run(panoramas, 2, penalised=True)
+    blob = io.BytesIO()
+    torch.save(first.state_dict(), blob)
+    blob.seek(0)
+    resumed = memory_run(panoramas, 1, state=torch.load(blob, weights_only=True), penalised=True)
+    for (name, a), b in zip(pen.policy.state_dict().items(), resumed.policy.state_dict().values()):
+        assert torch.equal(a, b), name
 
 
 @pytest.mark.parametrize("warm", [0.0, 1.0])

@@ -172,7 +172,7 @@ class DAggerTrainer(Trainer):
         self.buffer = SequenceBuffer(
             max(1, cfg.buffer_size // cfg.seq_len), cfg.seq_len, policy.height, policy.width,
             policy.hidden_size, dev, with_aux=self.aux_head is not None, fixed_size=self.fixed_size,
-            memory_size=policy.memory_inputs,
+            memory_size=policy.memory_inputs, with_penalty=cfg.penalised_loss,
         )
         weights = torch.ones(NUM_ACTIONS, device=dev)
         weights[STOP] = cfg.stop_weight
@@ -196,6 +196,9 @@ class DAggerTrainer(Trainer):
                 raise ValueError(f"memory inputs need 1-degree actions (the search memory's grid), got "
                                  f"task.step_deg={env.step_deg}")
             self.memory_band = memory_band(float(env.sim.fov))
+        if cfg.penalised_loss and self.revisits is None:
+            raise ValueError("trainer.dagger.penalised_loss=true trains against the search memory's penalty: it needs "
+                             f"agent.revisit_penalty > 0, got {revisit_penalty}")
 
     # ---------------------------------------------------------------------------------------------
 
@@ -238,6 +241,7 @@ class DAggerTrainer(Trainer):
         # the fixed encoder inputs the learner computes to act are the ones the buffer caches
         fixed = torch.empty(T, n, self.fixed_size, device=dev) if self.fixed_size else None
         memory = torch.empty(T, n, self.policy.memory_inputs, device=dev) if self.memory_band else None
+        penalty = torch.empty(T, n, 4, device=dev) if cfg.penalised_loss else None
         records: list[dict[str, Any]] = []
         agree = torch.zeros((), device=dev)
         executed_oracle = 0
@@ -256,6 +260,8 @@ class DAggerTrainer(Trainer):
                 self._memory_arrive()
             if memory is not None:
                 memory[t] = self.revisits.memory_features(self._all_slots, self.memory_band)
+            if penalty is not None:
+                penalty[t] = self.revisits.move_penalties(self._all_slots)
             oracle, label, searching = self._labels(None if memory is None else memory[t])
             labels[t].copy_(label)
             weights[t].masked_fill_(searching, cfg.search_weight)
@@ -290,6 +296,7 @@ class DAggerTrainer(Trainer):
             self.buffer.add(
                 views[s], targets[s], hiddens[k], masks[s], labels[s], None if aux is None else aux[s], weights[s],
                 None if fixed is None else fixed[s], None if memory is None else memory[s],
+                None if penalty is None else penalty[s],
             )
         self.env_steps += distributed.global_steps(T * n)  # all ranks under torchrun
         self._add_rollout_timings(t_forward, t_env, time.perf_counter() - start)
@@ -365,6 +372,9 @@ class DAggerTrainer(Trainer):
             )
             logits = dist.logits
             labels = b["labels"]
+            if "penalty" in b:  # the move logits the agent acts on, except where the label is STOP
+                moves = logits[:, :4] - b["penalty"] * (~labels[:, STOP])[:, None].to(logits.dtype)
+                logits = torch.cat([moves, logits[:, 4:]], dim=1)
             ce = set_nll(logits, labels, self.class_weights, b["weights"])
             loss = ce
             terms = {"policy_loss": ce}

@@ -73,6 +73,12 @@ class DAggerConfig:
     """With ``agent.memory_inputs``: the share of new training episodes whose search memory starts as if the agent
     had already looked around its start row a full turn, so the labels ask it to leave the row from the first step
     (a state a learner otherwise meets only after a missed turn, 300+ steps into an episode). 0 = off."""
+    penalised_loss: bool = False
+    """With the search memory (``agent.revisit_penalty > 0``): the loss of every step not labelled STOP reads the
+    move logits as the agent acts on them, less the memory's penalty (``penalty x`` earlier visits of each move's
+    destination), so a label that crosses a row looked around already teaches a margin that beats the penalty.
+    STOP-labelled steps keep the network's own logits (the agent's stop decision reads those). Off: the loss
+    reads the network's logits everywhere."""
     order: str = "pitch_first"
     """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
     ``pitch_first``, ``yaw_first`` or ``larger_first``."""

@@ -184,10 +184,8 @@ class RevisitPenalty:
         """The logits ``(K, 5)`` of slots ``idx`` after their :meth:`arrive`, penalised as :meth:`adjust` says."""
         idx = idx.to(self.device)
         rows = self.pitch[idx] + self.max_pitch
-        p, y = self._destinations(idx)
-        seen = self.visits[idx[:, None], p, y]  # (K, 4)
         out = logits.clone()
-        out[:, :4] = out[:, :4] - self.penalty * seen.to(out.dtype)
+        out[:, :4] = out[:, :4] - self.move_penalties(idx).to(out.dtype)
         if self.row_stride > 0:
             self._row_search(idx, rows, out)
         # the stop decision stays the policy's own: penalised moves must not make STOP win by default
@@ -195,6 +193,13 @@ class RevisitPenalty:
         out[:, 4] = torch.where(stop, logits[:, 4], torch.full_like(logits[:, 4], float("-inf")))
         out[stop] = torch.where(torch.arange(5, device=out.device) == 4, logits[stop], torch.full_like(logits[stop], float("-inf")))
         return out
+
+    def move_penalties(self, idx: torch.Tensor) -> torch.Tensor:
+        """``(K, 4)`` float32: the logit units :meth:`penalise` subtracts from UP, DOWN, LEFT, RIGHT of slots ``idx``
+        (``penalty x`` earlier visits of each move's destination). Call it after :meth:`arrive`."""
+        idx = idx.to(self.device)
+        p, y = self._destinations(idx)
+        return self.penalty * self.visits[idx[:, None], p, y].to(torch.float32)
 
     def memory_features(self, idx: torch.Tensor, band: int) -> torch.Tensor:
         """What the memory says about the search so far, as ``(K, MEMORY_FEATURES)`` float32 inputs for a policy.

@@ -36,6 +36,7 @@ class SequenceBuffer:
         with_aux: bool = False,
         fixed_size: int = 0,
         memory_size: int = 0,
+        with_penalty: bool = False,
     ) -> None:
         self.capacity, self.seq_len = int(capacity), int(seq_len)
         self.device = torch.device(device)
@@ -49,6 +50,7 @@ class SequenceBuffer:
         self.aux = torch.empty(c, L, AUX_SIZE, **kw) if with_aux else None
         self.fixed = torch.empty(c, L, int(fixed_size), **kw) if fixed_size > 0 else None
         self.memory = torch.empty(c, L, int(memory_size), **kw) if memory_size > 0 else None
+        self.penalty = torch.empty(c, L, 4, **kw) if with_penalty else None
         self.pos = 0  # next slot to write
         self.size = 0  # filled slots
 
@@ -66,10 +68,12 @@ class SequenceBuffer:
         weights: torch.Tensor | None = None,
         fixed: torch.Tensor | None = None,
         memory: torch.Tensor | None = None,
+        penalty: torch.Tensor | None = None,
     ) -> None:
         """Append ``n`` chunks given time-major: view / target (L, n, 3, H, W), hidden0 (n, hidden), masks
         (L, n), labels (L, n, 5) bool, aux (L, n, 3), weights (L, n) loss weights (default 1), fixed (L, n,
-        fixed_size) and memory (L, n, memory_size) (each required when the buffer stores it). The oldest chunks are overwritten when full."""
+        fixed_size), memory (L, n, memory_size) and penalty (L, n, 4), the search memory's move penalties in logit units (each
+        required when the buffer stores it). The oldest chunks are overwritten when full."""
         n = hidden0.shape[0]
         if n > self.capacity:  # keep the newest
             keep = slice(n - self.capacity, n)
@@ -79,6 +83,7 @@ class SequenceBuffer:
             weights = None if weights is None else weights[:, keep]
             fixed = None if fixed is None else fixed[:, keep]
             memory = None if memory is None else memory[:, keep]
+            penalty = None if penalty is None else penalty[:, keep]
             n = self.capacity
         slots = (torch.arange(n) + self.pos) % self.capacity
         slots = slots.to(self.device)
@@ -100,6 +105,10 @@ class SequenceBuffer:
             if memory is None:
                 raise ValueError("this buffer stores the search memory's features; add() needs memory")
             self.memory[slots] = memory.transpose(0, 1).to(self.device, torch.float32)
+        if self.penalty is not None:
+            if penalty is None:
+                raise ValueError("this buffer stores the search memory's move penalties; add() needs penalty")
+            self.penalty[slots] = penalty.transpose(0, 1).to(self.device, torch.float32)
         self.pos = (self.pos + n) % self.capacity
         self.size = min(self.capacity, self.size + n)
 
@@ -131,6 +140,8 @@ class SequenceBuffer:
             out["fixed"] = tm(self.fixed)
         if self.memory is not None:
             out["memory"] = tm(self.memory)
+        if self.penalty is not None:
+            out["penalty"] = tm(self.penalty)
         return out
 
     def recompute_fixed(self, fixed_of: Callable[[dict[str, torch.Tensor]], torch.Tensor], chunks: int = 32) -> None:
@@ -162,6 +173,8 @@ class SequenceBuffer:
             state["aux"] = self.aux[:n].cpu().clone()
         if self.memory is not None:
             state["memory"] = self.memory[:n].cpu().clone()
+        if self.penalty is not None:
+            state["penalty"] = self.penalty[:n].cpu().clone()
         return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -186,4 +199,8 @@ class SequenceBuffer:
             if state.get("memory") is None:
                 raise ValueError("saved DAgger buffer has no search-memory features but the policy reads them (agent.memory_inputs)")
             self.memory[:n] = state["memory"].to(self.device)
+        if self.penalty is not None:
+            if state.get("penalty") is None:
+                raise ValueError("saved DAgger buffer has no move penalties but trainer.dagger.penalised_loss=true")
+            self.penalty[:n] = state["penalty"].to(self.device)
         self.size, self.pos = n, int(state["pos"]) % self.capacity
