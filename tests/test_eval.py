@@ -192,6 +192,16 @@ def _eval_cfg(*overrides: str):
     return validate_config(compose_config("eval", list(overrides)))
 
 
+def test_stop_by_beyond_the_step_limit_is_a_config_error():
+    """agent.stop_by is T, the step the learned agent stops by: beyond task.max_steps its walk back could never
+    finish in time, and the error says so (a value up to T is accepted)."""
+    from findview.config import ConfigError
+
+    assert _eval_cfg("agent=ppo", "task.max_steps=1000", "agent.stop_by=1000").agent.stop_by == 1000
+    with pytest.raises(ConfigError, match=r"agent.stop_by=5000: expected 0 \(off\) or at most task.max_steps=1000"):
+        _eval_cfg("agent=ppo", "task.max_steps=1000", "agent.stop_by=5000")
+
+
 def test_difficulty_filter():
     from findview.episode import Episode
     from findview_baselines.evaluation.evaluate import EvalError, filter_episodes

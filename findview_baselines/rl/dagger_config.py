@@ -78,7 +78,8 @@ class DAggerConfig:
     move logits as the agent acts on them, less the memory's penalty (``penalty x`` earlier visits of each move's
     destination), so a label that crosses a row looked around already teaches a margin that beats the penalty.
     STOP-labelled steps keep the network's own logits (the agent's stop decision reads those). Off: the loss
-    reads the network's logits everywhere."""
+    reads the network's logits everywhere. Measured once (benchmarks/RESULTS.md, "Session 21"): a fine-tune with it
+    stopped in 57-70% of the trainer's val episodes against 83-90% without, and was abandoned at update 300."""
     order: str = "pitch_first"
     """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
     ``pitch_first``, ``yaw_first`` or ``larger_first``."""
