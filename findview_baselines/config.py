@@ -487,10 +487,6 @@ class EvalConfig:
         check(self.num_envs >= 1, "num_envs", self.num_envs, "a positive number of environments")
         check(self.video >= 0, "video", self.video, "0 or a number of episodes")
         check(self.torch_threads is None or self.torch_threads >= 1, "torch_threads", self.torch_threads, "null or >= 1")
-        stop_by = getattr(self.agent, "stop_by", 0)
-        if isinstance(self.task, TaskConfig):  # the step the agent stops by cannot lie beyond the episode's end
-            check(not stop_by or stop_by <= self.task.max_steps, "agent.stop_by", stop_by,
-                  f"0 (off) or at most task.max_steps={self.task.max_steps} (set it to T)")
 
 
 @dataclass

@@ -537,7 +537,7 @@ def test_cached_fixed_features_train_the_same_weights(panoramas) -> None:
 
 
 def memory_run(images, updates: int, state: dict | None = None, cover_cells: int = 6, warm: float = 0.0,
-               row_done_labels: str = "target", penalised: bool = False) -> DAggerTrainer:
+               row_done_labels: str = "target", penalised: str = "none") -> DAggerTrainer:
     """A DAgger run of a policy that reads its search memory, on hard starts only, with the oracle executing every
     step and a memory that calls a row done after ``cover_cells`` yaw cells (a full turn would take 360 steps)."""
     torch.manual_seed(0)
@@ -595,14 +595,14 @@ def test_memory_inputs_reach_the_buffer_the_labels_and_the_resume_state(panorama
 
 
 def test_penalised_loss_keeps_the_move_penalties_and_trains_on_them(panoramas) -> None:
-    """``penalised_loss``: the buffer keeps, per step, the memory's penalty of each move (2 logit units per earlier
-    visit of its destination);
+    """``penalised_loss=moves``: the buffer keeps, per step, the memory's penalty of each move (2 logit units per
+    earlier visit of its destination);
     the rollouts are the oracle's either way (beta 1), so the labels are the same and only the loss differs; the
     penalties resume exactly."""
     with pytest.raises(ValueError, match="penalised_loss"):
         DAggerTrainer(sampled_env(panoramas, 3, 32, 30, 120, seed=13), Policy(32, 32, variant="direct", hidden_size=16),
-                      DAggerConfig(penalised_loss=True), 6)
-    plain, pen = memory_run(panoramas, 3), memory_run(panoramas, 3, penalised=True)
+                      DAggerConfig(penalised_loss="moves"), 6)
+    plain, pen = memory_run(panoramas, 3), memory_run(panoramas, 3, penalised="moves")
     n = len(pen.buffer)
     penalty = pen.buffer.penalty[:n].flatten(0, 1)
     assert penalty.shape == (n * 4, 4)
@@ -614,13 +614,31 @@ def test_penalised_loss_keeps_the_move_penalties_and_trains_on_them(panoramas) -
     assert bool((penalty[masks == 1].amax(dim=1) >= 2.0).all())
     assert torch.equal(plain.buffer.labels[:n], pen.buffer.labels[:n])
     assert any(not torch.equal(a, b) for a, b in zip(plain.policy.state_dict().values(), pen.policy.state_dict().values()))
-    first = memory_run(panoramas, 2, penalised=True)
+    first = memory_run(panoramas, 2, penalised="moves")
     blob = io.BytesIO()
     torch.save(first.state_dict(), blob)
     blob.seek(0)
-    resumed = memory_run(panoramas, 1, state=torch.load(blob, weights_only=True), penalised=True)
+    resumed = memory_run(panoramas, 1, state=torch.load(blob, weights_only=True), penalised="moves")
     for (name, a), b in zip(pen.policy.state_dict().items(), resumed.policy.state_dict().values()):
         assert torch.equal(a, b), name
+
+
+def test_penalised_loss_rows_keeps_the_penalty_of_the_row_leaving_steps_only(panoramas) -> None:
+    """``penalised_loss=rows``: a step keeps its move penalties only where its label leaves a looked-around row (a lone
+    UP or DOWN at full weight, where the memory calls the row done and the views do not overlap); every other step's
+    penalties are 0."""
+    with pytest.raises(Exception, match="penalised_loss"):
+        DAggerConfig(penalised_loss="all")
+    trainer = memory_run(panoramas, 4, row_done_labels="rows", penalised="rows")
+    n = len(trainer.buffer)
+    penalty = trainer.buffer.penalty[:n].flatten(0, 1)
+    memory = trainer.buffer.memory[:n].flatten(0, 1)
+    labels = trainer.buffer.labels[:n].flatten(0, 1)
+    weights = trainer.buffer.weights[:n].flatten()
+    kept = penalty.amax(dim=1) > 0
+    leaving = (memory[:, 0] == 1.0) & (labels.sum(dim=1) == 1) & (labels[:, Action.UP] | labels[:, Action.DOWN])
+    assert bool(kept.any())
+    assert bool((leaving[kept]).all()) and bool((weights[kept] == 1.0).all())
 
 
 @pytest.mark.parametrize("warm", [0.0, 1.0])

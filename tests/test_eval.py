@@ -192,14 +192,20 @@ def _eval_cfg(*overrides: str):
     return validate_config(compose_config("eval", list(overrides)))
 
 
-def test_stop_by_beyond_the_step_limit_is_a_config_error():
-    """agent.stop_by is T, the step the learned agent stops by: beyond task.max_steps its walk back could never
-    finish in time, and the error says so (a value up to T is accepted)."""
-    from findview.config import ConfigError
+def test_stop_by_beyond_the_step_limit_is_clamped_with_a_warning(caplog):
+    """agent.stop_by is T, the step the learned agent stops by: evaluated with a smaller task.max_steps the agent
+    stops by that step instead, and the log says so (a value up to T is kept)."""
+    from findview_baselines.evaluation.evaluate import apply_checkpoint_config, build_agent
 
-    assert _eval_cfg("agent=ppo", "task.max_steps=1000", "agent.stop_by=1000").agent.stop_by == 1000
-    with pytest.raises(ConfigError, match=r"agent.stop_by=5000: expected 0 \(off\) or at most task.max_steps=1000"):
-        _eval_cfg("agent=ppo", "task.max_steps=1000", "agent.stop_by=5000")
+    ck = str(REPO / "pretrained" / "findview_sun360mini_indoor_robust.pth")
+    for stop_by, expected in ((5000, 30), (20, 20)):
+        overrides = [f"checkpoint={ck}", "agent=ppo", "task.max_steps=30", f"agent.stop_by={stop_by}"]
+        cfg = apply_checkpoint_config(_eval_cfg(*overrides), overrides)
+        with caplog.at_level("WARNING", logger="findview.eval"):
+            agent, _ = build_agent(cfg, 1, "cpu")
+        assert agent.give_up is not None and agent.give_up.stop_by == expected
+    assert "agent.stop_by=5000 is beyond task.max_steps=30" in caplog.text
+    assert "agent.stop_by=20" not in caplog.text
 
 
 def test_difficulty_filter():

@@ -265,8 +265,13 @@ def build_agent(cfg: EvalConfig, num_envs: int, device: Any):
                    "width": cfg.sim.width}
     elif name == "ppo":
         raise EvalError("agent=ppo needs a trained policy: pass checkpoint=<path to a .pth checkpoint>")
+    agent_cfg = cfg.agent
+    if isinstance(agent_cfg, PPOAgentConfig) and agent_cfg.stop_by > cfg.task.max_steps:
+        log.warning("agent.stop_by=%d is beyond task.max_steps=%d: the agent stops by step %d", agent_cfg.stop_by,
+                    cfg.task.max_steps, cfg.task.max_steps)
+        agent_cfg = replace(agent_cfg, stop_by=cfg.task.max_steps)
     try:
-        agent = make_agent(name, cfg.agent, num_envs, device, cfg.seed, **context)
+        agent = make_agent(name, agent_cfg, num_envs, device, cfg.seed, **context)
     except (FileNotFoundError, ValueError) as err:
         msg = str(err)
         if name not in agent_names():

@@ -172,7 +172,7 @@ class DAggerTrainer(Trainer):
         self.buffer = SequenceBuffer(
             max(1, cfg.buffer_size // cfg.seq_len), cfg.seq_len, policy.height, policy.width,
             policy.hidden_size, dev, with_aux=self.aux_head is not None, fixed_size=self.fixed_size,
-            memory_size=policy.memory_inputs, with_penalty=cfg.penalised_loss,
+            memory_size=policy.memory_inputs, with_penalty=cfg.penalised_loss != "none",
         )
         weights = torch.ones(NUM_ACTIONS, device=dev)
         weights[STOP] = cfg.stop_weight
@@ -196,8 +196,8 @@ class DAggerTrainer(Trainer):
                 raise ValueError(f"memory inputs need 1-degree actions (the search memory's grid), got "
                                  f"task.step_deg={env.step_deg}")
             self.memory_band = memory_band(float(env.sim.fov))
-        if cfg.penalised_loss and self.revisits is None:
-            raise ValueError("trainer.dagger.penalised_loss=true trains against the search memory's penalty: it needs "
+        if cfg.penalised_loss != "none" and self.revisits is None:
+            raise ValueError(f"trainer.dagger.penalised_loss={cfg.penalised_loss} trains against the search memory's penalty: it needs "
                              f"agent.revisit_penalty > 0, got {revisit_penalty}")
 
     # ---------------------------------------------------------------------------------------------
@@ -241,7 +241,7 @@ class DAggerTrainer(Trainer):
         # the fixed encoder inputs the learner computes to act are the ones the buffer caches
         fixed = torch.empty(T, n, self.fixed_size, device=dev) if self.fixed_size else None
         memory = torch.empty(T, n, self.policy.memory_inputs, device=dev) if self.memory_band else None
-        penalty = torch.empty(T, n, 4, device=dev) if cfg.penalised_loss else None
+        penalty = torch.empty(T, n, 4, device=dev) if cfg.penalised_loss != "none" else None
         records: list[dict[str, Any]] = []
         agree = torch.zeros((), device=dev)
         executed_oracle = 0
@@ -260,9 +260,10 @@ class DAggerTrainer(Trainer):
                 self._memory_arrive()
             if memory is not None:
                 memory[t] = self.revisits.memory_features(self._all_slots, self.memory_band)
-            if penalty is not None:
-                penalty[t] = self.revisits.move_penalties(self._all_slots)
-            oracle, label, searching = self._labels(None if memory is None else memory[t])
+            oracle, label, searching, leave = self._labels(None if memory is None else memory[t])
+            if penalty is not None:  # "rows": only the steps that leave a looked-around row read the penalty
+                pen = self.revisits.move_penalties(self._all_slots)
+                penalty[t] = pen if cfg.penalised_loss == "moves" else pen * leave[:, None].to(pen.dtype)
             labels[t].copy_(label)
             weights[t].masked_fill_(searching, cfg.search_weight)
             if aux is not None:
@@ -303,10 +304,11 @@ class DAggerTrainer(Trainer):
         stats = {"oracle_share": executed_oracle / (T * n), "rollout_agreement": float(agree) / (T * n)}
         return records, stats
 
-    def _labels(self, memory: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """This step's oracle: the action to execute (N,) long, the label set (N, NUM_ACTIONS) bool, and the steps
+    def _labels(self, memory: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """This step's oracle: the action to execute (N,) long, the label set (N, NUM_ACTIONS) bool, the steps
         that weigh ``search_weight`` (N,) bool: searches with no overlap of view and target, except the steps that
-        leave a finished row. ``memory``: this step's (N, memory_inputs) features, for a policy that reads them."""
+        leave a finished row, and those steps (N,) bool. ``memory``: this step's (N, memory_inputs) features, for a
+        policy that reads them."""
         cfg, env, dev = self.cfg, self.env, self.device
         fov = float(env.sim.fov)
         row_done = memory[:, 0] > 0.5 if memory is not None and cfg.search_prior == "pan" else None
@@ -320,7 +322,7 @@ class DAggerTrainer(Trainer):
             label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
         searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov).to(dev)
         if row_done is None:
-            return oracle, label, searching
+            return oracle, label, searching, torch.zeros_like(searching)
         if cfg.row_done_labels == "rows":  # to the next search row instead, and those steps weigh fully
             start_pitch = env.pitch.to(dev) - self.revisits.pitch.to(dev)  # the dead-reckoned start row
             side = torch.where(env.target_pitch.to(dev) >= start_pitch, 1, -1)
@@ -330,7 +332,7 @@ class DAggerTrainer(Trainer):
             label = torch.where(leave[:, None], nn.functional.one_hot(move.clamp(min=0), NUM_ACTIONS).bool(), label)
         else:  # the steps towards the target's pitch from a finished row weigh fully
             leave = row_done & ((env.target_pitch - env.pitch).abs().to(dev) > cfg.row_done_band * fov)
-        return oracle, label, searching & ~leave
+        return oracle, label, searching & ~leave, leave
 
     def _memory_arrive(self) -> None:
         """The search memory: slots whose episode starts now forget (with memory inputs, ``memory_warm_start`` of

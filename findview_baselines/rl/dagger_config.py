@@ -14,6 +14,8 @@ __all__ = ["DAggerConfig", "LABEL_MODES", "beta_at"]
 LABEL_MODES = ("action", "set")
 #: trainer.dagger.row_done_labels choices
 ROW_DONE_LABELS = ("target", "rows")
+#: trainer.dagger.penalised_loss choices
+PENALISED_LOSSES = ("none", "moves", "rows")
 
 
 @dataclass
@@ -73,13 +75,15 @@ class DAggerConfig:
     """With ``agent.memory_inputs``: the share of new training episodes whose search memory starts as if the agent
     had already looked around its start row a full turn, so the labels ask it to leave the row from the first step
     (a state a learner otherwise meets only after a missed turn, 300+ steps into an episode). 0 = off."""
-    penalised_loss: bool = False
-    """With the search memory (``agent.revisit_penalty > 0``): the loss of every step not labelled STOP reads the
-    move logits as the agent acts on them, less the memory's penalty (``penalty x`` earlier visits of each move's
-    destination), so a label that crosses a row looked around already teaches a margin that beats the penalty.
-    STOP-labelled steps keep the network's own logits (the agent's stop decision reads those). Off: the loss
-    reads the network's logits everywhere. Measured once (benchmarks/RESULTS.md, "Session 21"): a fine-tune with it
-    stopped in 57-70% of the trainer's val episodes against 83-90% without, and was abandoned at update 300."""
+    penalised_loss: str = "none"
+    """With the search memory (``agent.revisit_penalty > 0``): which steps' loss reads the move logits as the agent
+    acts on them, less the memory's penalty (``penalty x`` earlier visits of each move's destination), so that their
+    label teaches a margin that beats the penalty. ``none``: no step (the loss reads the network's logits);
+    ``moves``: every step not labelled STOP (STOP-labelled steps keep the network's logits: the agent's stop
+    decision reads those); ``rows``: only the steps whose label leaves a looked-around row for the next search row
+    (``row_done_labels=rows``), the moves that cross rows seen before. Measured once (benchmarks/RESULTS.md,
+    "Session 21"): a fine-tune with ``moves`` stopped in 57-70% of the trainer's val episodes against 83-90%
+    without, and was abandoned at update 300."""
     order: str = "pitch_first"
     """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
     ``pitch_first``, ``yaw_first`` or ``larger_first``."""
@@ -132,6 +136,8 @@ class DAggerConfig:
         for name in ("row_done_band", "memory_warm_start"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        if self.penalised_loss not in PENALISED_LOSSES:
+            raise ConfigError(f"trainer.dagger.penalised_loss must be one of {PENALISED_LOSSES}, got {self.penalised_loss!r}")
         if self.row_done_labels not in ROW_DONE_LABELS:
             raise ConfigError(f"trainer.dagger.row_done_labels must be one of {ROW_DONE_LABELS}, got {self.row_done_labels!r}")
         if self.labels not in LABEL_MODES:
