@@ -81,9 +81,9 @@ class DAggerConfig:
     label teaches a margin that beats the penalty. ``none``: no step (the loss reads the network's logits);
     ``moves``: every step not labelled STOP (STOP-labelled steps keep the network's logits: the agent's stop
     decision reads those); ``rows``: only the steps whose label leaves a looked-around row for the next search row
-    (``row_done_labels=rows``), the moves that cross rows seen before. Measured once (benchmarks/RESULTS.md,
-    "Session 21"): a fine-tune with ``moves`` stopped in 57-70% of the trainer's val episodes against 83-90%
-    without, and was abandoned at update 300."""
+    (``row_done_labels=rows``), the moves that cross rows seen before. Measured once each (benchmarks/RESULTS.md,
+    "Session 21"), neither helped: a fine-tune with ``moves`` stopped in 57-70% of the trainer's val episodes
+    against 83-90% without (abandoned at update 300); one with ``rows`` ended worse on the corrupted val sets."""
     order: str = "pitch_first"
     """Axis order of the oracle's executed actions (and of the labels with ``labels=action``):
     ``pitch_first``, ``yaw_first`` or ``larger_first``."""
