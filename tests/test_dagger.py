@@ -629,6 +629,9 @@ def test_penalised_loss_rows_keeps_the_penalty_of_the_row_leaving_steps_only(pan
     penalties are 0."""
     with pytest.raises(Exception, match="penalised_loss"):
         DAggerConfig(penalised_loss="all")
+    with pytest.raises(ValueError, match="memory_inputs"):  # without the memory's inputs no step leaves a done row
+        DAggerTrainer(sampled_env(panoramas, 3, 32, 30, 120, seed=13), Policy(32, 32, variant="direct", hidden_size=16),
+                      DAggerConfig(penalised_loss="rows"), 6, revisit_penalty=2.0)
     trainer = memory_run(panoramas, 4, row_done_labels="rows", penalised="rows")
     n = len(trainer.buffer)
     penalty = trainer.buffer.penalty[:n].flatten(0, 1)

@@ -197,8 +197,11 @@ class DAggerTrainer(Trainer):
                                  f"task.step_deg={env.step_deg}")
             self.memory_band = memory_band(float(env.sim.fov))
         if cfg.penalised_loss != "none" and self.revisits is None:
-            raise ValueError(f"trainer.dagger.penalised_loss={cfg.penalised_loss} trains against the search memory's penalty: it needs "
-                             f"agent.revisit_penalty > 0, got {revisit_penalty}")
+            raise ValueError(f"trainer.dagger.penalised_loss={cfg.penalised_loss} trains against the search memory's "
+                             f"penalty: it needs agent.revisit_penalty > 0, got {revisit_penalty}")
+        if cfg.penalised_loss == "rows" and not self.memory_band:  # no memory inputs: no step ever leaves a done row
+            raise ValueError("trainer.dagger.penalised_loss=rows penalises the steps that leave a looked-around row: "
+                             "it needs agent.memory_inputs=true")
 
     # ---------------------------------------------------------------------------------------------
 

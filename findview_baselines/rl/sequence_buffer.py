@@ -201,6 +201,6 @@ class SequenceBuffer:
             self.memory[:n] = state["memory"].to(self.device)
         if self.penalty is not None:
             if state.get("penalty") is None:
-                raise ValueError("saved DAgger buffer has no move penalties but trainer.dagger.penalised_loss=true")
+                raise ValueError("saved DAgger buffer has no move penalties but trainer.dagger.penalised_loss is on")
             self.penalty[:n] = state["penalty"].to(self.device)
         self.size, self.pos = n, int(state["pos"]) % self.capacity
