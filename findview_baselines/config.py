@@ -256,6 +256,11 @@ class PPOAgentConfig:
     has looked at 90% of a full turn of yaw cells near its current row, how much of a turn, whether the rows above / below have been, and its pitch
     offset from the start (findview_baselines/rl/search_memory.py, ``memory_features``). With DAgger's ``pan``
     search prior the labels then leave a finished row towards the target. Part of the checkpoint signature."""
+    pitch_warps: bool = False
+    """The network also reads the phase correlation of the view with the target warped by six pitch offsets (+-1/6,
+    1/3, 1/2 of ``fov``): a cue that the target is straight above or below (findview_baselines/rl/pitch_warps.py),
+    through a layer that starts at zero (``init_from`` an agent without it starts unchanged). direct / robust /
+    phase variants only. Part of the checkpoint signature."""
     refine_stop: bool = False
     """At validation / evaluation: check each stop of the policy by phase correlation of view and target, and when
     the target is measured at least half a degree away move towards it (one degree per step, at most
@@ -475,6 +480,16 @@ class EvalConfig:
     """Frames per second of the videos."""
     video_pano_height: Optional[int] = None
     """Panorama strip height in the videos, pixels (null: the view height)."""
+    trace: bool = False
+    """Also write traces.jsonl beside episodes.jsonl, one line per episode in the same order: {"episode_id", "pitch",
+    "yaw", "action", "stop_prob"}, each a list with one entry per step: the pose before the step's action (integer
+    degrees), the action (UP=0, DOWN=1, LEFT=2, RIGHT=3, STOP=4) and the probability the agent's network gave STOP
+    (null for agents without one, the rule-based ones). For the learned agent that is softmax(logits)[STOP] of the
+    network's own distribution, before the search memory: the distribution it acted from when
+    agent.revisit_penalty=0; with the memory on, the one that decides STOP (the memory lowers only the moves and
+    keeps the network's STOP decision, giving STOP probability 0 or 1 itself), the one agent.stop_prob and
+    agent.stop_by compare. null at a step the network did not decide (a stop being refined, a stop_by walk back).
+    Costs one device-to-host copy per step."""
     progress: bool = True
     """tqdm progress bar (counts episodes and steps)."""
     torch_threads: Optional[int] = None

@@ -541,3 +541,162 @@ def test_a_missing_checkpoint_next_to_a_model_card_points_to_the_card(tmp_path):
     (tmp_path / "README.md").write_text("# model card\n")
     with pytest.raises(FileNotFoundError, match=r"agent\.pth.*README\.md says how to make it"):
         load_checkpoint(tmp_path / "agent.pth")
+
+
+# ------------------------------------------------------------------------------------------------
+# trace=true: traces.jsonl, the TraceRecorder, the agents' STOP probability
+# ------------------------------------------------------------------------------------------------
+def _moved(pose: tuple[int, int], action: int, step: int = 1, bound: int = 60) -> tuple[int, int]:
+    """The pose after ``action`` (UP=0, DOWN=1, LEFT=2, RIGHT=3, STOP=4): pitch clamped at ``bound``, yaw
+    wrapped into (-180, 180]; written out here, not taken from the environment."""
+    pitch, yaw = pose
+    if action == 0:
+        pitch = min(pitch + step, bound)
+    elif action == 1:
+        pitch = max(pitch - step, -bound)
+    elif action in (2, 3):
+        yaw += step if action == 3 else -step
+        yaw = yaw - 360 if yaw > 180 else yaw + 360 if yaw <= -180 else yaw
+    return pitch, yaw
+
+
+def _check_trace(trace: dict, rec: dict) -> None:
+    """One episode's trace against its episodes.jsonl record: one entry per step, starting at the initial pose,
+    each pose the previous one moved by the previous action, the last action leading to the final pose, and
+    the last action STOP exactly when the episode stopped."""
+    acts = trace["action"]
+    assert trace["episode_id"] == rec["episode_id"]
+    assert len(acts) == len(trace["pitch"]) == len(trace["yaw"]) == rec["steps"] > 0
+    poses = list(zip(trace["pitch"], trace["yaw"])) + [(rec["final_pitch"], rec["final_yaw"])]
+    assert poses[0] == _moved((rec["init_pitch"], rec["init_yaw"]), 4)
+    for k, a in enumerate(acts):
+        assert poses[k + 1] == _moved(poses[k], a), (rec["episode_id"], k, poses[k], a, poses[k + 1])
+    assert (acts[-1] == 4) == rec["called_stop"]
+    assert 4 not in acts[:-1]
+
+
+def _read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(x) for x in path.read_text().splitlines()]
+
+
+def test_trace_of_a_rule_based_agent(folder_ds, tmp_path):
+    """evaluate() with trace=true: traces.jsonl lines in episodes.jsonl's order, poses that follow the actions,
+    stop_prob null (the random agent has none); without trace no traces.jsonl."""
+    from findview_baselines.evaluation.evaluate import evaluate
+
+    overrides = ["agent=random", *ds_args(folder_ds), *SMALL, "task.max_steps=5", "num_envs=4", "seed=3"]
+    for trace in (True, False):
+        out = tmp_path / str(trace)
+        given = [*overrides, f"trace={str(trace).lower()}"]
+        evaluate(_eval_cfg(*given), out, choices={"dataset": "folder", "agent": "random"}, overrides=given)
+        assert (out / "traces.jsonl").is_file() == trace
+    out = tmp_path / "True"
+    recs, traces = _read_jsonl(out / "episodes.jsonl"), _read_jsonl(out / "traces.jsonl")
+    assert [t["episode_id"] for t in traces] == [r["episode_id"] for r in recs] and len(recs) == 9
+    for t, r in zip(traces, recs):
+        assert list(t) == ["episode_id", "pitch", "yaw", "action", "stop_prob"]
+        assert t["stop_prob"] is None
+        _check_trace(t, r)
+    # the premises: every action occurs, episodes end both ways
+    assert {a for t in traces for a in t["action"]} == {0, 1, 2, 3, 4}
+    assert {r["called_stop"] for r in recs} == {True, False}
+    assert not list(out.glob(".*.tmp"))
+
+
+def test_trace_recorder_clamps_wraps_and_restarts_slots(folder_ds):
+    """A scripted agent at the pitch bound and across yaw +-180, on 2 slots for 3 episodes (the third starts in a
+    slot another episode left): exact poses, actions and the agent's per-step values (NaN -> None)."""
+    from dataclasses import replace
+
+    from findview_baselines.agents.base import Agent
+    from findview_baselines.evaluation import TraceRecorder, run_episodes
+
+    base = _episodes(folder_ds)[0]
+    episodes = [replace(base, episode_id="up", init_pitch=58, init_yaw=178),
+                replace(base, episode_id="down", init_pitch=-58, init_yaw=-179),
+                replace(base, episode_id="left", init_pitch=0, init_yaw=-179)]
+    scripts = {"up": [0, 0, 0, 0, 3, 3, 3, 1, 2, 2, 4], "down": [1] * 12, "left": [2, 2, 4]}
+
+    class Scripted(Agent):
+        name = "scripted"
+
+        def __init__(self, num_envs):
+            super().__init__(num_envs)
+            self.script, self.k, self.last_k = [[]] * num_envs, [0] * num_envs, [0] * num_envs
+
+        def reset(self, env_ids, eps):
+            super().reset(env_ids, eps)
+            for i, ep in zip(env_ids, eps):
+                self.script[i], self.k[i] = (scripts[ep.episode_id] if ep is not None else []), 0
+
+        def act(self, obs):
+            self.last_k = list(self.k)
+            acts = [self.script[i][self.k[i]] if self.k[i] < len(self.script[i]) else 4 for i in range(self.num_envs)]
+            self.k = [k + 1 for k in self.k]
+            return torch.tensor(acts)
+
+        def step_stop_prob(self):  # the step index / 100, no value at step 2
+            return torch.tensor([float("nan") if k == 2 else k / 100 for k in self.last_k])
+
+    agent = Scripted(2)
+    tracer = TraceRecorder(agent.step_stop_prob)
+    records, _ = run_episodes(_env(episodes, 2, max_steps=12), agent, progress=False, callbacks=[tracer])
+    assert [r["episode_id"] for r in records] == ["up", "down", "left"]
+    up, down, left = (tracer.traces[e] for e in ("up", "down", "left"))
+    assert list(zip(up["pitch"], up["yaw"])) == [(58, 178), (59, 178), (60, 178), (60, 178), (60, 178), (60, 179),
+                                                  (60, 180), (60, -179), (59, -179), (59, 180), (59, 179)]
+    assert up["action"] == scripts["up"] and down["action"] == scripts["down"]
+    assert down["pitch"] == [-58, -59, -60, -60, -60, -60, -60, -60, -60, -60, -60, -60] and set(down["yaw"]) == {-179}
+    assert (left["pitch"], left["yaw"], left["action"]) == ([0, 0, 0], [-179, 180, 179], [2, 2, 4])
+    assert up["stop_prob"] == [0.0, 0.01, None, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.1]
+    assert left["stop_prob"] == [0.0, 0.01, None]
+    for r in records:
+        _check_trace(tracer.traces[r["episode_id"]], r)
+    assert [r["called_stop"] for r in records] == [True, False, True]
+    no_probs = TraceRecorder()  # no stop_prob function: null as a whole
+    run_episodes(_env(episodes, 2, max_steps=12), Scripted(2), progress=False, callbacks=[no_probs])
+    assert no_probs.traces["up"]["action"] == scripts["up"] and no_probs.traces["up"]["stop_prob"] is None
+
+
+def test_ppo_step_stop_prob_is_the_networks_own(tiny_ckpt):
+    """step_stop_prob: the network's STOP probability of the last act, before the search memory (whose own
+    distribution is 0 or 1 on STOP), NaN for a slot the network did not decide for; rule-based agents: None."""
+    from findview_baselines.agents import make_agent
+    from findview_baselines.agents.base import STOP
+    from findview_baselines.agents.ppo_agent import PPOAgent
+
+    assert make_agent("random", None, 2).step_stop_prob() is None
+    assert make_agent("oracle", None, 2).step_stop_prob() is None
+    g = torch.Generator().manual_seed(0)
+    obs = {k: torch.randint(0, 256, (3, 3, 64, 64), dtype=torch.uint8, generator=g) for k in ("view", "target")}
+    for penalty in (0.0, 2.0):
+        agent = PPOAgent.from_checkpoint(tiny_ckpt, 3, "cpu", height=64, width=64, revisit_penalty=penalty)
+        with torch.no_grad():
+            dist, _, _ = agent.policy(obs, agent.policy.initial_hidden(3, "cpu"), torch.ones(3))
+        expected = dist.probs[:, STOP]
+        assert ((expected > 0.01) & (expected < 0.99)).all()  # the premise: not the memory's 0 / 1
+        agent.reset([0, 1, 2], [None, None, None])
+        agent.done[:] = False  # three running slots (reset with no episodes idles them)
+        agent.act(obs)
+        assert torch.allclose(agent.step_stop_prob(), expected, atol=1e-6), penalty
+        agent.done[:] = [False, True, False]  # slot 1 has stopped: the network does not decide for it
+        agent.act(obs)
+        p = agent.step_stop_prob()
+        assert torch.isnan(p[1]) and not torch.isnan(p[[0, 2]]).any() and ((p[[0, 2]] >= 0) & (p[[0, 2]] <= 1)).all()
+
+
+def test_trace_of_the_learned_agent(folder_ds, tiny_ckpt, tmp_path):
+    """tools/eval.py trace=true with a checkpoint: a STOP probability per step, in [0, 1], consistent with the
+    greedy actions (STOP only where it is the argmax, so >= 1/5; a move only where STOP is not, so <= 1/2)."""
+    out = tmp_path / "ppo_trace"
+    check(run_tool("eval.py", "agent=ppo", f"checkpoint={tiny_ckpt}", *ds_args(folder_ds), *SMALL, "task.max_steps=30",
+                   "max_episodes=4", "num_envs=2", "trace=true", f"hydra.run.dir={out}"))
+    recs, traces = _read_jsonl(out / "episodes.jsonl"), _read_jsonl(out / "traces.jsonl")
+    assert [t["episode_id"] for t in traces] == [r["episode_id"] for r in recs] and len(recs) == 4
+    for t, r in zip(traces, recs):
+        _check_trace(t, r)
+        probs = t["stop_prob"]
+        assert len(probs) == r["steps"] and all(isinstance(p, float) and 0.0 <= p <= 1.0 for p in probs)
+        for a, p in zip(t["action"], probs):
+            assert p >= 0.2 if a == 4 else p <= 0.5
+    assert len({p for t in traces for p in t["stop_prob"]}) > 1

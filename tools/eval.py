@@ -11,7 +11,8 @@ Examples::
 
 The run folder (``hydra.run.dir``; named after the agent, or after the checkpoint's run) receives
 ``episodes.jsonl`` (one record per episode), ``summary.json``, ``summary.md`` (the paper's table layout),
-``run.json``, ``config_resolved.yaml`` and ``videos/`` (``video=N``), all written atomically once every
+``run.json``, ``config_resolved.yaml``, ``videos/`` (``video=N``) and ``traces.jsonl`` (``trace=true``: per
+episode and step the pose, the action and the learned agent's STOP probability), all written atomically once every
 episode is done, and ``summary.md`` (the result table) is printed on stdout at the end. ``checkpoint=``
 implies ``agent=ppo`` (so ``agent.revisit_penalty=0`` and the other learned-agent keys are valid with it).
 Ctrl-C writes nothing and exits with status 130; problems with the input (data made from another root or

@@ -5,7 +5,9 @@ Contract (docs/ARCHITECTURE.md):
 - ``Agent.reset(env_ids, episodes)`` is called when the slots ``env_ids`` start the episodes ``episodes``
   (the observation returned with ``env.new_episode[i] == True``), before ``act`` sees that observation;
 - ``Agent.act(obs) -> (N,) long`` on the device of ``obs["view"]``; ``obs = {"view", "target"}`` are
-  ``(N, 3, H, W)`` uint8 RGB tensors. Actions: UP=0, DOWN=1, LEFT=2, RIGHT=3, STOP=4.
+  ``(N, 3, H, W)`` uint8 RGB tensors. Actions: UP=0, DOWN=1, LEFT=2, RIGHT=3, STOP=4;
+- optionally ``Agent.step_stop_prob() -> (N,) float | None``: the STOP probability behind the last ``act``
+  (for per-step traces; ``None`` by default, the learned agent gives its policy's).
 
 Only the oracle may use the rotations stored in an :class:`~findview.episode.Episode`. The other agents
 read nothing from it but its ``difficulty`` (the rule-based agents tune ``d_thresh`` per difficulty, as
@@ -164,6 +166,14 @@ class Agent:
     def act(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """Next actions ``(N,)`` long on the device of ``obs["view"]``."""
         raise NotImplementedError
+
+    def step_stop_prob(self) -> torch.Tensor | None:
+        """How sure the agent was about STOP in its last :meth:`act`, for per-step traces (``tools/eval.py
+        trace=true``): ``(N,)`` float probabilities in ``[0, 1]`` (any device), ``NaN`` for the slots where no
+        model decided that step; ``None`` (this default) for an agent without such a probability (the rule-based
+        ones). Called only by whoever wants it (a trace recorder), after ``act``: an agent keeps what it needs
+        for the answer without copying it to the host, so ``act`` costs nothing more when no one asks."""
+        return None
 
     # helpers -----------------------------------------------------------------------------------
     def _check_obs(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:

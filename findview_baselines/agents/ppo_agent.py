@@ -23,6 +23,8 @@
 - ``stop_by > 0`` (needs the search memory; set it to ``T``): a slot that has not stopped when the steps left are
   just enough walks back to the dead-reckoned pose where the policy's STOP probability was highest and stops
   there (:mod:`findview_baselines.agents.give_up`), instead of running out of steps wherever it is.
+- :meth:`PPOAgent.step_stop_prob` gives the policy's STOP probability of the last ``act`` (for ``tools/eval.py
+  trace=true``); it is computed only when asked.
 
 Checkpoints are read with ``torch.load(..., weights_only=True)``; the layout is the one written by the
 trainer (``{"signature": {...}, "policy": state_dict, ...}``, see ``findview_baselines.rl.checkpoint``).
@@ -49,6 +51,8 @@ from findview_baselines.rl.observations import area_downsample, downsample_facto
 from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
 
 if TYPE_CHECKING:
+    from torch.distributions import Categorical
+
     from findview_baselines.config import PPOAgentConfig
 
 __all__ = ["PPOAgent", "load_ppo_checkpoint"]
@@ -135,6 +139,8 @@ class PPOAgent(Agent):
                 )
             margin = 1 + (refiner.max_moves if refiner is not None else 0)  # the refinement's moves after the walk
             self.give_up = GiveUp(self.num_envs, int(stop_by), self.revisits.yaw_cells, self.device, margin=margin)
+        # the last act's network outputs: (slots the policy decided for, their action distribution), or None
+        self._last_policy: tuple[torch.Tensor, "Categorical"] | None = None
 
     # construction --------------------------------------------------------------------------------
     @classmethod
@@ -184,10 +190,14 @@ class PPOAgent(Agent):
                 f"sim.height={h} sim.width={w} or an integer multiple of both (the agent then area-averages "
                 f"the views down to {h}x{w}), and the FoV it was trained with"
             )
+        if sig.get("pitch_warps") and fov is None:
+            raise ValueError(f"{path}: this network reads pitch-warped views (pitch_warps in its checkpoint signature) "
+                             f"and needs the views' field of view (fov=), which neither the call nor its config gives")
         policy = Policy(
             height=h, width=w, variant=str(sig["variant"]), hidden_size=int(sig["hidden_size"]),
             fine_shifts=int(sig.get("fine_shifts", 0)), fine_scales=int(sig.get("fine_scales", 1)),
-            memory_inputs=int(sig.get("memory_inputs", 0)),
+            memory_inputs=int(sig.get("memory_inputs", 0)), pitch_warps=int(sig.get("pitch_warps", 0)),
+            warp_fov=90.0 if fov is None else fov,
         )
         check_signature(sig, policy.model_signature())
         try:
@@ -252,6 +262,7 @@ class PPOAgent(Agent):
                 f"{self.policy.height}x{self.policy.width} or an integer multiple of it"
             )
         full_view, full_target = view, target  # the stop refinement measures on the views as rendered
+        self._last_policy = None
         view, target = area_downsample(view, k), area_downsample(target, k)
         actions = torch.full((self.num_envs,), STOP, dtype=torch.long, device=self.device)
         work = np.flatnonzero(~self.done)
@@ -281,6 +292,23 @@ class PPOAgent(Agent):
             self.done[work[(actions[torch.as_tensor(work, device=self.device)] == STOP).cpu().numpy()]] = True
         return actions.to(view.device)
 
+    def step_stop_prob(self) -> torch.Tensor | None:
+        """The policy network's STOP probability in the last :meth:`act`: ``(N,)`` float32 on the agent's device,
+        ``NaN`` for the slots the network did not decide for that step (already stopped or idle, a stop being
+        refined, a ``stop_by`` walk back).
+
+        It is ``softmax(logits)[STOP]`` of the network's own distribution, before the search memory: without the
+        memory (``revisit_penalty=0``) that is the distribution the agent acted from; with it, the memory lowers
+        only the moves and leaves the STOP decision to the network (its distribution puts exactly 0 or 1 on STOP,
+        1 where the network's argmax is STOP), so this is the probability that decided STOP either way, the one
+        ``stop_prob`` and ``stop_by`` compare as well. Computed here, from references ``act`` keeps (no host copy
+        and no extra work in ``act``)."""
+        out = torch.full((self.num_envs,), float("nan"), dtype=torch.float32, device=self.device)
+        if self._last_policy is not None:
+            idx, dist = self._last_policy
+            out[idx] = dist.probs[:, STOP].float()
+        return out
+
     def _policy_actions(self, work: np.ndarray, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """The policy's actions (len(work),) for the slots ``work``; their GRU states move on."""
         full = len(work) == self.num_envs
@@ -294,6 +322,7 @@ class PPOAgent(Agent):
             self.revisits.arrive(idx, v)
             memory = self.revisits.memory_features(idx, self.memory_band)
         dist, _, h_new = self.policy({"view": v, "target": t}, h, masks, memory=memory)
+        self._last_policy = (idx, dist)  # references only: step_stop_prob computes from them when asked
         if full:
             self.hidden = h_new
         else:

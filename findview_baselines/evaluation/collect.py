@@ -54,10 +54,10 @@ CORRUPTION_CATEGORIES: dict[str, tuple[str, ...]] = dict(CATEGORIES)
 #: the name of "no corruption" (the ``clear`` column)
 CLEAR = "none"
 
-#: config keys that never change the numbers (threads, progress bars, videos, the batch of parallel
+#: config keys that never change the numbers (threads, progress bars, videos, traces, the batch of parallel
 #: episodes) and Hydra's own: ignored when telling runs apart
 IGNORED_KEYS = (
-    "hydra", "progress", "video", "video_fps", "video_pano_height", "num_envs", "torch_threads",
+    "hydra", "progress", "video", "video_fps", "video_pano_height", "trace", "num_envs", "torch_threads",
     "sim.device", "sim.prefetch_workers", "sim.bank_mb", "agent.threads", "agent.torch_threads",
 )
 

@@ -13,7 +13,8 @@ Steps (:func:`evaluate`):
    :class:`~findview.task.StaticEpisodeSource`;
 3. the agent (``make_agent(agent.name, ...)``, or a PPO checkpoint with ``checkpoint=<path>``);
 4. :func:`~findview_baselines.evaluation.harness.run_episodes`, then the optional videos, then the
-   result files (all written atomically, only once every episode is done).
+   result files (all written atomically, only once every episode is done; with ``trace=true`` also
+   ``traces.jsonl``, each episode's poses, actions and STOP probabilities step by step).
 """
 
 from __future__ import annotations
@@ -241,6 +242,7 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
         view["fov"] = float(trained_sim["fov"])
     model: dict[str, Any] = {k: sig[k] for k in _MODEL_KEYS if k in sig}
     model["memory_inputs"] = bool(sig.get("memory_inputs", 0))  # a width in the signature, a switch in the config
+    model["pitch_warps"] = bool(sig.get("pitch_warps", 0))
     search = {k: trained_agent[k] for k in _SEARCH_KEYS if k in trained_agent and f"agent.{k}" not in given}
     # agent.fov (the refinement's degrees per pixel, the search memory's band) follows the FoV the views will have
     fov = {} if "agent.fov" in given else {"fov": float(view.get("fov", cfg.sim.fov))}
@@ -333,24 +335,26 @@ def _run_meta(cfg: EvalConfig, dataset_name: str, path: Path, agent_config: str,
 
 
 def _play(cfg: EvalConfig, episodes: list[Episode], num_envs: int, device: Any, out: Path, where: str):
-    """Agent and environment over ``episodes``; returns ``(records, runtime, agent name, trajectory recorder)``."""
-    from findview_baselines.evaluation.harness import TrajectoryRecorder, run_episodes
+    """Agent and environment over ``episodes``; returns ``(records, runtime, agent name, trajectory recorder,
+    trace recorder)`` (the recorders ``None`` unless ``video`` / ``trace`` asked for them)."""
+    from findview_baselines.evaluation.harness import TraceRecorder, TrajectoryRecorder, run_episodes
 
     agent, agent_name = build_agent(cfg, num_envs, device)  # fail fast on agent errors
     env = None
     try:
         env = build_env(cfg, episodes, num_envs)
         recorder = TrajectoryRecorder([e.episode_id for e in episodes[: cfg.video]]) if cfg.video else None
+        tracer = TraceRecorder(agent.step_stop_prob) if cfg.trace else None
         log.info("evaluating %d episodes of %s with %s on %s, %d envs; results -> %s",
                  len(episodes), where, agent_name, env.device, num_envs, out)
-        records, runtime = run_episodes(env, agent, progress=cfg.progress, callbacks=[recorder] if recorder else (),
-                                        desc=agent_name)
+        callbacks = [cb for cb in (recorder, tracer) if cb is not None]
+        records, runtime = run_episodes(env, agent, progress=cfg.progress, callbacks=callbacks, desc=agent_name)
     finally:
         if hasattr(agent, "close"):
             agent.close()
         if env is not None:
             env.close()
-    return records, runtime, agent_name, recorder
+    return records, runtime, agent_name, recorder, tracer
 
 
 def evaluate(
@@ -391,11 +395,13 @@ def evaluate(
         device = resolve_device(str(cfg.sim.device))
     except ValueError as err:
         raise EvalError(str(err)) from err
-    records, runtime, agent_name, recorder = _play(cfg, episodes, num_envs, device, out, f"{dataset_name} ({path})")
+    records, runtime, agent_name, recorder, tracer = _play(cfg, episodes, num_envs, device, out,
+                                                           f"{dataset_name} ({path})")
     if recorder is not None:
         for p in render_videos(cfg, out, episodes, records, recorder.actions):
             log.info("video: %s", p)
     meta = _run_meta(cfg, dataset_name, path, choices.get("agent", agent_name), len(records), num_envs, device)
-    summary = write_results(out, records, runtime.to_dict(), agent_name, meta, config_yaml(cfg))
+    summary = write_results(out, records, runtime.to_dict(), agent_name, meta, config_yaml(cfg),
+                            traces=tracer.traces if tracer is not None else None)
     log.info("summary: %s", out / "summary.md")
     return summary

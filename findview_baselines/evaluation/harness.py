@@ -14,13 +14,14 @@ On CUDA the device is synchronised before each clock read.
 from __future__ import annotations
 
 import time
+import math
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
 
-__all__ = ["Runtime", "run_episodes", "TrajectoryRecorder", "StepCallback"]
+__all__ = ["Runtime", "run_episodes", "TrajectoryRecorder", "TraceRecorder", "StepCallback"]
 
 #: ``callback(env, actions)``: called after ``agent.act`` and before ``env.step`` (not timed)
 StepCallback = Callable[[Any, torch.Tensor], None]
@@ -91,6 +92,58 @@ class TrajectoryRecorder:
         for i in slots:
             if active[i]:
                 self.actions.setdefault(env.episodes[i].episode_id, []).append(int(acts[i]))
+
+
+class TraceRecorder:
+    """A :data:`StepCallback` that keeps every episode's per-step trajectory (``tools/eval.py trace=true``).
+
+    For each step of a running episode it records the pose *before* the step's action (``env.pitch``,
+    ``env.yaw``: integer degrees; yaw in ``(-180, 180]``), the action taken and, when ``stop_prob`` gives one,
+    the agent's STOP probability behind that action (``Agent.step_stop_prob``). One device-to-host copy per
+    step (pose, actions, the new-episode flags and the probabilities stacked together when they share a device).
+
+    Args:
+        stop_prob: called once per step after ``agent.act``; returns ``(N,)`` probabilities (``NaN``: no value for
+            that slot this step) or ``None``; e.g. ``agent.step_stop_prob``. ``None``: no probabilities.
+
+    Attributes:
+        traces: ``{episode_id: {"episode_id", "pitch", "yaw", "action", "stop_prob"}}``, one list entry per step
+            (the final STOP, or the step that reached ``T``, included); ``stop_prob`` is ``None`` when the agent
+            gives none, else a list of floats (7 significant digits) with ``None`` where it had no value. An
+            episode id that runs again replaces its earlier trace (the episodes of an episode file have distinct
+            ids).
+    """
+
+    def __init__(self, stop_prob: Callable[[], torch.Tensor | None] | None = None) -> None:
+        self.stop_prob = stop_prob
+        self.traces: dict[str, dict[str, Any]] = {}
+        self._current: dict[int, dict[str, Any]] = {}  # slot -> the trace of the episode running there
+
+    def __call__(self, env: Any, actions: torch.Tensor) -> None:
+        probs = self.stop_prob() if self.stop_prob is not None else None
+        device = env.pitch.device
+        rows = torch.stack([env.pitch, env.yaw, actions.to(device).long(), env.active.long(), env.new_episode.long()])
+        if probs is not None and probs.device == device:  # one copy: the integers are exact in float64
+            host = torch.cat([rows.double(), probs.double()[None]]).cpu()
+            pitch, yaw, acts, active, new, p = host[:5].long().tolist() + [host[5].tolist()]
+        else:
+            pitch, yaw, acts, active, new = rows.cpu().tolist()
+            p = None if probs is None else probs.double().cpu().tolist()
+        for i, ep in enumerate(env.episodes):
+            if not active[i] or ep is None:
+                continue
+            trace = self._current.get(i)
+            if new[i] or trace is None:
+                trace = {"episode_id": ep.episode_id, "pitch": [], "yaw": [], "action": [],
+                         "stop_prob": None if p is None else []}
+                self._current[i] = self.traces[ep.episode_id] = trace
+            trace["pitch"].append(int(pitch[i]))
+            trace["yaw"].append(int(yaw[i]))
+            trace["action"].append(int(acts[i]))
+            if trace["stop_prob"] is not None:
+                value = None if p is None else float(p[i])
+                # 7 significant digits: a float32's precision, without the float64 digits of its conversion
+                trace["stop_prob"].append(None if value is None or math.isnan(value) else float(f"{value:.7g}"))
 
 
 def _sync(device: torch.device) -> None:

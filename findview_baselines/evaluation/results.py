@@ -1,5 +1,6 @@
 """The result files of one evaluation run (``episodes.jsonl``, ``run.json``, ``config_resolved.yaml``,
-``summary.md``, ``summary.json``): :func:`make_summary`, :func:`summary_markdown`, :func:`write_results`.
+``summary.md``, ``summary.json``; with ``trace=true`` ``traces.jsonl``): :func:`make_summary`,
+:func:`summary_markdown`, :func:`write_results`, :func:`write_traces`.
 
 The tables built from a multirun of such runs live in ``collect.py``, the agent title and the
 non-default settings of a run in ``run_info.py``; their names are re-exported here.
@@ -57,6 +58,7 @@ __all__ = [
     "make_summary",
     "summary_markdown",
     "write_results",
+    "write_traces",
     # re-exported from run_info.py and collect.py (the old import paths keep working)
     "agent_title",
     "learned_agent_info",
@@ -151,6 +153,39 @@ def _write_jsonl(path: Path, records: Sequence[Mapping[str, Any]]) -> Path:
     return atomic_write(path, _write)
 
 
+#: the keys of one ``traces.jsonl`` line, in order
+TRACE_FIELDS = ("episode_id", "pitch", "yaw", "action", "stop_prob")
+
+
+def write_traces(path: str | os.PathLike, records: Sequence[Mapping[str, Any]],
+                 traces: Mapping[str, Mapping[str, Any]]) -> Path:
+    """Write ``traces.jsonl`` atomically: one line per record, in the records' order (that of ``episodes.jsonl``),
+    ``{"episode_id", "pitch", "yaw", "action", "stop_prob"}`` (:data:`TRACE_FIELDS`) from that episode's trace of
+    :class:`~findview_baselines.evaluation.harness.TraceRecorder`: per step the pose before the action (integer
+    degrees), the action (UP=0, DOWN=1, LEFT=2, RIGHT=3, STOP=4) and the agent's STOP probability (``null`` as a
+    whole for an agent without one, ``null`` at a step without a value).
+
+    Raises:
+        ValueError: a record without a trace, or whose trace does not have ``steps`` actions.
+    """
+    rows = []
+    for r in records:
+        eid = r["episode_id"]
+        if eid not in traces:
+            raise ValueError(f"episode {eid}: no trace was recorded")
+        trace = traces[eid]
+        if len(trace["action"]) != r["steps"]:
+            raise ValueError(f"episode {eid}: its trace has {len(trace['action'])} actions for {r['steps']} steps")
+        rows.append({k: trace[k] for k in TRACE_FIELDS})
+
+    def _write(tmp: str) -> None:
+        with open(tmp, "w") as f:
+            for row in rows:
+                f.write(json.dumps(row) + "\n")
+
+    return atomic_write(path, _write)
+
+
 def write_results(
     out_dir: str | os.PathLike,
     records: Sequence[Mapping[str, Any]],
@@ -158,11 +193,13 @@ def write_results(
     agent: str,
     meta: Mapping[str, Any] | None = None,
     resolved_config: str | None = None,
+    traces: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """Write ``episodes.jsonl``, ``run.json`` (meta + detailed runtime), ``config_resolved.yaml`` (when
-    ``resolved_config`` is given), ``summary.md`` and, last, ``summary.json`` into ``out_dir``, each
-    atomically. A learned agent's trainer and variant (from its checkpoint) and the settings that differ
-    from the defaults (read from the run folder's ``.hydra/hydra.yaml``) join ``meta``. Returns the summary."""
+    """Write ``episodes.jsonl``, ``traces.jsonl`` (when ``traces`` is given, see :func:`write_traces`),
+    ``run.json`` (meta + detailed runtime), ``config_resolved.yaml`` (when ``resolved_config`` is given),
+    ``summary.md`` and, last, ``summary.json`` into ``out_dir``, each atomically. A learned agent's trainer and
+    variant (from its checkpoint) and the settings that differ from the defaults (read from the run folder's
+    ``.hydra/hydra.yaml``) join ``meta``. Returns the summary."""
     out = Path(out_dir)
     summary = make_summary(records, runtime)
     meta = dict(meta or {})
@@ -173,6 +210,8 @@ def write_results(
         if settings is not None:
             meta["settings"] = settings
     _write_jsonl(out / "episodes.jsonl", records)
+    if traces is not None:
+        write_traces(out / "traces.jsonl", records, traces)
     write_json(out / "run.json", {"agent": agent, **dict(meta or {}), "runtime": dict(runtime)})
     if resolved_config is not None:
         write_text(out / "config_resolved.yaml", resolved_config)

@@ -39,6 +39,11 @@ Variants (``variant`` in ``configs/agent/ppo.yaml``):
   on the coarse volume's shift bins, their peaks and the values around zero shift; see
   :class:`PhaseCorrelation`): a direction and a stop cue that ignore intensity changes.
 
+Pitch warps (``pitch_warps``, the ``direct`` family only): the phase correlation of the view with the target
+warped by six hypothesised pitch offsets (:class:`PitchWarpedPhase`, ``rl/pitch_warps.py``), a cue that the
+target is straight above or below, enters through ``warp_proj`` (an MLP whose last layer starts at zero) added to
+the encoder's features; its scalars are part of :meth:`Policy.fixed_features`.
+
 Auxiliary rotation loss (any variant, training only): :class:`AuxHead` regresses ``(dpitch, dyaw) / fov``
 and classifies overlap from the features before the GRU (``Policy.forward_features``); see
 :func:`aux_loss`. The head is owned by the optimiser (PPO / DAgger), not by the policy, so policy
@@ -86,8 +91,12 @@ from findview_baselines.rl.encoders import (
     pyramid_costs,
     standardize,
 )
+from findview_baselines.rl.pitch_warps import WARP_FEATURES, PitchWarpedPhase
 from findview_baselines.rl.search_memory import MEMORY_FEATURES
 from findview_baselines.rl.signature import OPTIONAL_SIGNATURE_FIELDS, SIGNATURE_FIELDS, check_signature
+
+# width of the hidden layer that reads the pitch warps' scalars
+WARP_HIDDEN = 64
 
 if TYPE_CHECKING:  # the schema lives above rl/ (it lists rl's variants); only its fields are read here
     from findview_baselines.config import PPOAgentConfig
@@ -180,8 +189,15 @@ class Policy(nn.Module):
         fine_shifts: int = 0,
         fine_scales: int = 1,
         memory_inputs: int = 0,
+        pitch_warps: int = 0,
+        warp_fov: float = 90.0,
     ) -> None:
         super().__init__()
+        if int(pitch_warps) not in (0, WARP_FEATURES):
+            raise ValueError(f"pitch_warps must be 0 (off) or {WARP_FEATURES} (the width of the pitch-warped phase "
+                             f"correlation's scalars), got {pitch_warps}")
+        if pitch_warps and variant not in ("direct", "robust", "phase"):
+            raise ValueError(f"pitch_warps needs one of the variants direct, robust, phase, got {variant!r}")
         if int(memory_inputs) not in (0, MEMORY_FEATURES):
             raise ValueError(f"memory_inputs must be 0 (off) or {MEMORY_FEATURES} (the width of the search memory's "
                              f"features), got {memory_inputs}")
@@ -224,6 +240,13 @@ class Policy(nn.Module):
         # through a linear map that starts at zero: the policy starts as the one without them (init_from)
         self.memory_inputs = int(memory_inputs)
         self.memory_proj = nn.Linear(self.memory_inputs, feature_size) if self.memory_inputs else None
+        # the pitch-warped phase correlation (rl/pitch_warps.py; parameter-free, for views of ``warp_fov`` degrees)
+        # through a small MLP whose last layer starts at zero, added to the encoder's features like the memory's
+        self.pitch_warps = int(pitch_warps)
+        self.warp = PitchWarpedPhase(height, width, warp_fov) if self.pitch_warps else None
+        self.warp_proj = nn.Sequential(
+            nn.Linear(self.pitch_warps, WARP_HIDDEN), nn.ReLU(), nn.Linear(WARP_HIDDEN, feature_size),
+        ) if self.pitch_warps else None
         self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
         self.critic = nn.Linear(hidden_size, 1)
@@ -264,7 +287,10 @@ class Policy(nn.Module):
         ``agent.compile`` is not applied to it)."""
         if fixed is not None:
             def run() -> torch.Tensor:
-                return self.encoder.head_forward(fixed)
+                if self.warp_proj is None:
+                    return self.encoder.head_forward(fixed)
+                split = self.encoder.fixed_size
+                return self.encoder.head_forward(fixed[:, :split]) + self.warp_proj(fixed[:, split:])
             device = fixed.device
         elif obs is None:
             raise ValueError("features needs obs or fixed")
@@ -282,7 +308,9 @@ class Policy(nn.Module):
     def fixed_feature_size(self) -> int:
         """Width of :meth:`fixed_features` for the variants whose encoder begins with fixed, parameter-free
         comparisons (``direct``, ``robust``, ``phase``: :meth:`DirectEncoder.fixed_inputs`); 0 for the others."""
-        return self.encoder.fixed_size if isinstance(self.encoder, DirectEncoder) else 0
+        if not isinstance(self.encoder, DirectEncoder):
+            return 0
+        return self.encoder.fixed_size + self.pitch_warps
 
     def fixed_features(self, obs: Obs) -> torch.Tensor:
         """The encoder's parameter-free part: ``obs`` {"view", "target"} (B, 3, H, W) uint8 -> (B,
@@ -292,7 +320,11 @@ class Policy(nn.Module):
             raise ValueError(f"the {self.variant!r} variant has no fixed encoder part (fixed_feature_size is 0)")
         self._check_size(obs["view"])
         with torch.no_grad():
-            return self.encoder.fixed_inputs(self._prepare(obs["view"]), self._prepare(obs["target"])).float()
+            view, target = self._prepare(obs["view"]), self._prepare(obs["target"])
+            fixed = self.encoder.fixed_inputs(view, target).float()
+            if self.warp is None:
+                return fixed
+            return torch.cat([fixed, self.warp(view, target).float()], dim=1)
 
     def _init_weights(self) -> None:
         """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
@@ -309,6 +341,8 @@ class Policy(nn.Module):
         nn.init.orthogonal_(self.critic.weight, gain=1.0)
         if self.memory_proj is not None:
             nn.init.zeros_(self.memory_proj.weight)
+        if self.warp_proj is not None:
+            nn.init.zeros_(self.warp_proj[-1].weight)
 
     # ---------------------------------------------------------------------------------------------
 
@@ -322,6 +356,8 @@ class Policy(nn.Module):
             sig["fine_scales"] = self.fine_scales
         if self.memory_inputs:
             sig["memory_inputs"] = self.memory_inputs
+        if self.pitch_warps:
+            sig["pitch_warps"] = self.pitch_warps
         return sig
 
     @property
@@ -348,7 +384,10 @@ class Policy(nn.Module):
         self._check_size(obs["view"])
         view = self._prepare(obs["view"])
         if self.variant not in CONV_VARIANTS:  # the FINE_VARIANTS take both images together
-            return self.encoder(view, self._prepare(obs["target"]))
+            target = self._prepare(obs["target"])
+            if self.warp is None:
+                return self.encoder(view, target)
+            return self.encoder(view, target) + self.warp_proj(self.warp(view, target).to(view.dtype))
         # the work that depends on the target alone runs once per distinct target (a rollout repeats each
         # episode's target on every step; see rl/distinct.py): the same features and gradients, less work
         groups = distinct_rows(obs["target"]) if distinct_targets else None
@@ -503,9 +542,11 @@ class Policy(nn.Module):
 
 def build_policy(agent: "PPOAgentConfig", height: int, width: int) -> Policy:
     """Policy from the ``agent`` section (:class:`findview_baselines.config.PPOAgentConfig`: ``variant``,
-    ``hidden_size``, ``fine_shifts``, ``fine_scales``, ``memory_inputs``; speed options ``precision``, ``channels_last``,
+    ``hidden_size``, ``fine_shifts``, ``fine_scales``, ``memory_inputs``, ``pitch_warps`` (for views of ``fov``
+    degrees); speed options ``precision``, ``channels_last``,
     ``compile``, see :meth:`Policy.configure_speed`) and the view size of ``sim`` (pixels)."""
     policy = Policy(height=int(height), width=int(width), variant=agent.variant, hidden_size=agent.hidden_size,
                     fine_shifts=agent.fine_shifts, fine_scales=agent.fine_scales,
-                    memory_inputs=MEMORY_FEATURES if agent.memory_inputs else 0)
+                    memory_inputs=MEMORY_FEATURES if agent.memory_inputs else 0,
+                    pitch_warps=WARP_FEATURES if agent.pitch_warps else 0, warp_fov=agent.fov)
     return policy.configure_speed(precision=agent.precision, channels_last=agent.channels_last, compile=agent.compile)
