@@ -287,10 +287,7 @@ class Policy(nn.Module):
         ``agent.compile`` is not applied to it)."""
         if fixed is not None:
             def run() -> torch.Tensor:
-                if self.warp_proj is None:
-                    return self.encoder.head_forward(fixed)
-                split = self.encoder.fixed_size
-                return self.encoder.head_forward(fixed[:, :split]) + self.warp_proj(fixed[:, split:])
+                return self._direct_head(fixed)
             device = fixed.device
         elif obs is None:
             raise ValueError("features needs obs or fixed")
@@ -320,11 +317,23 @@ class Policy(nn.Module):
             raise ValueError(f"the {self.variant!r} variant has no fixed encoder part (fixed_feature_size is 0)")
         self._check_size(obs["view"])
         with torch.no_grad():
-            view, target = self._prepare(obs["view"]), self._prepare(obs["target"])
-            fixed = self.encoder.fixed_inputs(view, target).float()
-            if self.warp is None:
-                return fixed
-            return torch.cat([fixed, self.warp(view, target).float()], dim=1)
+            return self._direct_fixed(self._prepare(obs["view"]), self._prepare(obs["target"])).float()
+
+    def _direct_fixed(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The ``direct`` family's parameter-free inputs: view, target (B, 3, H, W) float in [0, 1] -> (B,
+        :attr:`fixed_feature_size`): :meth:`DirectEncoder.fixed_inputs`, then the pitch warps' scalars if on."""
+        fixed = self.encoder.fixed_inputs(view, target)
+        if self.warp is None:
+            return fixed
+        return torch.cat([fixed, self.warp(view, target).to(fixed.dtype)], dim=1)
+
+    def _direct_head(self, fixed: torch.Tensor) -> torch.Tensor:
+        """The ``direct`` family's learned part: :meth:`_direct_fixed`'s (B, :attr:`fixed_feature_size`) -> (B, F):
+        the encoder's head, plus the pitch warps through ``warp_proj`` if on."""
+        if self.warp_proj is None:
+            return self.encoder.head_forward(fixed)
+        split = self.encoder.fixed_size
+        return self.encoder.head_forward(fixed[:, :split]) + self.warp_proj(fixed[:, split:])
 
     def _init_weights(self) -> None:
         """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
@@ -385,9 +394,9 @@ class Policy(nn.Module):
         view = self._prepare(obs["view"])
         if self.variant not in CONV_VARIANTS:  # the FINE_VARIANTS take both images together
             target = self._prepare(obs["target"])
-            if self.warp is None:
-                return self.encoder(view, target)
-            return self.encoder(view, target) + self.warp_proj(self.warp(view, target).to(view.dtype))
+            if isinstance(self.encoder, DirectEncoder):
+                return self._direct_head(self._direct_fixed(view, target))
+            return self.encoder(view, target)
         # the work that depends on the target alone runs once per distinct target (a rollout repeats each
         # episode's target on every step; see rl/distinct.py): the same features and gradients, less work
         groups = distinct_rows(obs["target"]) if distinct_targets else None
