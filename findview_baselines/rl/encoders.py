@@ -38,6 +38,7 @@ __all__ = [
     "DIRECT_SOFTMIN_TEMPERATURE",
     "standardize",
     "highpass",
+    "phase_setup",
     "STANDARDIZE_SCALE",
     "STANDARDIZE_FLOOR",
     "PHASE_SIDE",
@@ -357,6 +358,24 @@ PHASE_BANDWIDTHS = (0.3, 0.1)
 PHASE_SCALARS = 4 * len(PHASE_BANDWIDTHS) + 9
 
 
+def phase_setup(height: int, width: int, bandwidths: tuple[float, ...]) -> tuple[int, int, int, torch.Tensor, torch.Tensor]:
+    """What a phase correlation of ``height x width`` images needs (shared by :class:`PhaseCorrelation` and the
+    pitch warps, ``rl/pitch_warps.py``).
+
+    Returns ``(pool, h, w, window, weights)``: the block size ``p = min(H, W) // PHASE_SIDE`` (at least 1), the
+    averaged size ``h x w = (H // p) x (W // p)`` pixels, the 2-D Hann ``window`` (h, w), and per bandwidth ``sigma``
+    (cycles per pixel) the Gaussian weight ``exp(-|f|^2 / (2 sigma^2))`` on the rfft of the 2h x 2w zero-padded
+    images, ``weights`` (len(bandwidths), 2h, w + 1).
+    """
+    pool = max(1, min(int(height), int(width)) // PHASE_SIDE)
+    h, w = int(height) // pool, int(width) // pool
+    window = torch.hann_window(h, periodic=False)[:, None] * torch.hann_window(w, periodic=False)[None, :]
+    fy = torch.fft.fftfreq(2 * h)[:, None]
+    fx = torch.fft.rfftfreq(2 * w)[None, :]
+    weights = torch.stack([torch.exp(-(fy ** 2 + fx ** 2) / (2 * sigma ** 2)) for sigma in bandwidths])
+    return pool, h, w, window, weights
+
+
 class PhaseCorrelation(nn.Module):
     """Band-limited phase correlation of view and target: shift-resolved, blind to intensity changes.
 
@@ -384,15 +403,9 @@ class PhaseCorrelation(nn.Module):
 
     def __init__(self, height: int, width: int, cells: int, shifts: int) -> None:
         super().__init__()
-        self.pool = max(1, min(int(height), int(width)) // PHASE_SIDE)
-        self.height, self.width = int(height) // self.pool, int(width) // self.pool
+        self.pool, self.height, self.width, window, weights = phase_setup(height, width, PHASE_BANDWIDTHS)
         self.cells, self.shifts = int(cells), int(shifts)
-        hann_y = torch.hann_window(self.height, periodic=False)
-        window = hann_y[:, None] * torch.hann_window(self.width, periodic=False)[None, :]
         self.register_buffer("window", window, persistent=False)
-        fy = torch.fft.fftfreq(2 * self.height)[:, None]
-        fx = torch.fft.rfftfreq(2 * self.width)[None, :]
-        weights = torch.stack([torch.exp(-(fy ** 2 + fx ** 2) / (2 * sigma ** 2)) for sigma in PHASE_BANDWIDTHS])
         self.register_buffer("weights", weights, persistent=False)  # (K, 2h, w + 1)
         # the shifts of the coarse volume's bins: +-(s + 1/2) cells around zero, max-pooled to 2s + 1 bins a side
         self.bins = 2 * self.shifts + 1

@@ -25,7 +25,7 @@ import math
 import torch
 from torch import nn
 
-from findview_baselines.rl.encoders import PHASE_SIDE, standardize
+from findview_baselines.rl.encoders import phase_setup, standardize
 
 __all__ = ["WARP_FRACTIONS", "WARP_FEATURES", "warp_grids", "PitchWarpedPhase"]
 
@@ -81,18 +81,13 @@ class PitchWarpedPhase(nn.Module):
         if not 0 < fov < 180:
             raise ValueError(f"pitch warps need a field of view in (0, 180) degrees, got {fov}")
         self.fov = float(fov)
-        self.pool = max(1, min(int(height), int(width)) // PHASE_SIDE)
-        self.height, self.width = int(height) // self.pool, int(width) // self.pool
-        h, w = self.height, self.width
+        self.pool, self.height, self.width, window, weights = phase_setup(height, width, (WARP_BANDWIDTH,))
         offsets = torch.tensor(WARP_FRACTIONS, dtype=torch.float64) * self.fov
-        grid, valid = warp_grids(h, w, self.fov, offsets)
-        window = torch.hann_window(h, periodic=False)[:, None] * torch.hann_window(w, periodic=False)[None, :]
+        grid, valid = warp_grids(self.height, self.width, self.fov, offsets)
         self.register_buffer("grid", grid, persistent=False)  # (K, h, w, 2)
         self.register_buffer("valid", valid, persistent=False)  # (K, 1, h, w)
         self.register_buffer("window", window, persistent=False)
-        fy = torch.fft.fftfreq(2 * h)[:, None]
-        fx = torch.fft.rfftfreq(2 * w)[None, :]
-        self.register_buffer("weights", torch.exp(-(fy**2 + fx**2) / (2 * WARP_BANDWIDTH**2)), persistent=False)
+        self.register_buffer("weights", weights[0], persistent=False)  # (2h, w + 1)
 
     def _grey(self, image: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) -> (B, 1, h, w): standardised grey, block-averaged."""
