@@ -149,7 +149,7 @@ def test_phase_variant_builds_runs_and_is_its_own_signature() -> None:
 def test_phase_setup_sizes_window_and_band_weights(height: int, width: int, pool: int, h: int, w: int) -> None:
     """Block size min(H, W) // 32 (at least 1) and the averaged size by hand; the window is 0 at the borders and 1
     at the centre of an odd side; the band weight is 1 at zero frequency and exp(-f^2 / (2 sigma^2)) at
-    (0, f = 1/4 cycle per pixel), on the rfft grid of the 2h x 2w zero-padded image."""
+    (0, f near 1/4 cycle per pixel), on the rfft grid of the 2h x 2w zero-padded image."""
     got_pool, got_h, got_w, window, weights = phase_setup(height, width, (0.3, 0.1))
     assert (got_pool, got_h, got_w) == (pool, h, w)
     assert window.shape == (h, w) and weights.shape == (2, 2 * h, w + 1)
@@ -157,6 +157,7 @@ def test_phase_setup_sizes_window_and_band_weights(height: int, width: int, pool
     if h % 2 and w % 2:
         assert float(window[h // 2, w // 2]) == pytest.approx(1.0)
     assert weights[:, 0, 0].tolist() == [1.0, 1.0]
-    col = round(0.25 * 2 * w)  # rfft column of 1/4 cycle per pixel (2w samples)
+    col = round(0.25 * 2 * w)  # the rfft column nearest 1/4 cycle per pixel (2w samples): col / (2w) cycles
+    f = col / (2 * w)
     for k, sigma in enumerate((0.3, 0.1)):
-        assert float(weights[k, 0, col]) == pytest.approx(math.exp(-(0.25 ** 2) / (2 * sigma ** 2)), rel=1e-5)
+        assert float(weights[k, 0, col]) == pytest.approx(math.exp(-(f ** 2) / (2 * sigma ** 2)), rel=1e-5)
