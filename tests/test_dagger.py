@@ -671,3 +671,96 @@ def test_row_done_labels_rows_leave_for_the_search_rows(panoramas) -> None:
     # a step at the start row with no search row done goes to the first row of ring 1: only UP or DOWN is labelled
     first = (trainer.buffer.masks[:n].flatten() == 0) & done & (weights == 1.0) & lone_pitch
     assert bool(first.any())
+
+
+# --------------------------------------------------------------------------------------------------
+# Overlapped updates (overlap_rollout): the rollout in a second thread beside the gradient steps
+# --------------------------------------------------------------------------------------------------
+
+
+def overlap_run(images, overlap: bool, updates: int, thread=None) -> DAggerTrainer:
+    """A small DAgger run of the ``phase`` policy with its search memory, the learner acting alone from update 2
+    (beta 0); ``thread`` replaces ``threading.Thread`` in the trainer's module (a stand-in that runs the rollout
+    at another time)."""
+    import findview_baselines.rl.dagger as dagger_module
+
+    torch.manual_seed(0)
+    env = sampled_env(images, 3, 32, 30, 120, seed=14)
+    policy = Policy(32, 32, variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2)
+    cfg = DAggerConfig(rollout_steps=8, seq_len=4, buffer_size=96, batch_sequences=3, epochs=2.0,
+                       beta_decay_updates=2, labels="set", search_prior="pan", overlap_rollout=overlap)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=6, revisit_penalty=2.0)
+    trainer.start()
+    real = dagger_module.threading.Thread
+    if thread is not None:
+        dagger_module.threading.Thread = thread
+    try:
+        for _ in range(updates):
+            trainer.train_update()
+    finally:
+        dagger_module.threading.Thread = real
+    return trainer
+
+
+class RunAtStart:
+    """A ``threading.Thread`` stand-in that runs its target at ``start()``: the rollout before the gradient steps."""
+
+    def __init__(self, target, name=None, daemon=None) -> None:
+        self.target = target
+
+    def start(self) -> None:
+        self.target()
+
+    def join(self) -> None:
+        pass
+
+
+class RunAtJoin(RunAtStart):
+    """Runs its target at ``join()``: the rollout after the gradient steps have changed the weights."""
+
+    def start(self) -> None:
+        pass
+
+    def join(self) -> None:
+        self.target()
+
+
+def test_overlapped_rollouts_are_deterministic_and_independent_of_the_thread_timing(panoramas) -> None:
+    """With overlap_rollout the rollout and the gradient steps share no state: the threaded run gives the same
+    weights, buffer and environment as the rollout run entirely before the gradient steps, and as the rollout run
+    entirely after them (it acts with the weights copied before them, not the ones they change). The first update
+    (empty buffer) is the sequential one; later ones differ from it (the gradient steps do not see the rollout
+    collected beside them), and every rollout still reaches the buffer."""
+    threaded = overlap_run(panoramas, True, 4)
+    for stand_in in (RunAtStart, RunAtJoin):
+        other = overlap_run(panoramas, True, 4, thread=stand_in)
+        for (name, a), b in zip(threaded.policy.state_dict().items(), other.policy.state_dict().values()):
+            assert torch.equal(a, b), (stand_in.__name__, name)
+        assert torch.equal(threaded.buffer.labels, other.buffer.labels)
+        assert torch.equal(threaded.buffer.fixed, other.buffer.fixed)
+        assert torch.equal(threaded.env.yaw, other.env.yaw) and torch.equal(threaded.hidden, other.hidden)
+    first_overlap, first_plain = overlap_run(panoramas, True, 1), overlap_run(panoramas, False, 1)
+    assert all(torch.equal(a, b) for a, b in zip(first_overlap.params, first_plain.params))
+    plain = overlap_run(panoramas, False, 4)
+    assert len(threaded.buffer) == len(plain.buffer) == 4 * 2 * 3  # 4 rollouts x 2 chunks x 3 envs
+    assert threaded.env_steps == plain.env_steps == 4 * 8 * 3
+    assert not all(torch.equal(a, b) for a, b in zip(threaded.params, plain.params))
+    # the acting copy holds the weights of the last update's start, not the trained ones
+    assert not all(torch.equal(a, b) for a, b in zip(threaded._acting.parameters(), threaded.policy.parameters()))
+
+
+def test_overlapped_update_raises_the_rollouts_error_and_honours_a_stop_before_it(panoramas) -> None:
+    trainer = overlap_run(panoramas, True, 2)
+    weights = [p.detach().clone() for p in trainer.params]
+    size, update = len(trainer.buffer), trainer.update
+    with pytest.raises(UpdateAbandoned):
+        trainer.train_update(should_stop=lambda: True)
+    assert trainer.update == update and len(trainer.buffer) == size
+    assert all(torch.equal(a, b) for a, b in zip(weights, trainer.params))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("simulator failed in the rollout thread")
+
+    trainer._collect = broken
+    with pytest.raises(RuntimeError, match="rollout thread"):
+        trainer.train_update()

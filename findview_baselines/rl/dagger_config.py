@@ -101,6 +101,13 @@ class DAggerConfig:
     compute that part once per step, when the learner acts in the rollout, and keep it in the buffer for every
     gradient step
     (the same loss; 3.4x faster updates of the robust preset on a CPU; 5 KB per buffered step). Ignored by the others."""
+    overlap_rollout: bool = False
+    """Collect each update's rollout in a second thread while its gradient steps train on the buffer (two CPU
+    cores, or a GPU: both at once instead of one after the other). The rollout acts with the weights from before
+    those gradient steps (as without overlap), and its chunks enter the buffer after them: an update's gradient
+    steps see every rollout but its own (the first update, with an empty buffer, runs one after the other). A stop
+    request is honoured before an update, not during its rollout. Deterministic (the same run gives the same
+    weights), but not the weights of ``false``. Not under torchrun."""
 
     def __post_init__(self) -> None:
         positive = ("lr", "rollout_steps", "seq_len", "buffer_size", "batch_sequences", "epochs")
