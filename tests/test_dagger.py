@@ -296,6 +296,9 @@ def test_sequence_buffer_is_fifo_and_batches_time_major() -> None:
     assert b["view"][:, 0, 0, 0].tolist() == [40, 20, 41, 21, 42, 22]
     assert b["labels"].int().argmax(dim=1).tolist() == [4, 2, 0, 3, 1, 4]
     assert b["hidden0"][:, 0].tolist() == [4.0, 2.0]
+    lean = buf.batch(torch.tensor([slot, other]), images=False)  # a trainer reading cached fixed inputs
+    assert "view" not in lean and "target" not in lean
+    assert all(torch.equal(lean[k], b[k]) for k in lean)
     idx = buf.sample(10, torch.Generator().manual_seed(0))
     assert sorted(idx.tolist()) == [0, 1, 2, 3]
 

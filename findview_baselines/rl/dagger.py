@@ -407,8 +407,10 @@ class DAggerTrainer(Trainer):
         totals: dict[str, float] = {}
         self.policy.train()
         for _ in range(steps):
-            b = self.buffer.batch(self.buffer.sample(cfg.batch_sequences, self.sample_generator))
-            obs = {"view": b["view"], "target": b["target"]}
+            # with the cached fixed inputs the network never reads the images: they are not gathered
+            cached = self.buffer.fixed is not None
+            b = self.buffer.batch(self.buffer.sample(cfg.batch_sequences, self.sample_generator), images=not cached)
+            obs = None if cached else {"view": b["view"], "target": b["target"]}
             dist, _, _, features = self.policy.forward_features(
                 obs, b["hidden0"], b["masks"], fixed=b.get("fixed"), memory=b.get("memory")
             )

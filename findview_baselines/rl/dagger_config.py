@@ -107,7 +107,8 @@ class DAggerConfig:
     those gradient steps (as without overlap), and its chunks enter the buffer after them: an update's gradient
     steps see every rollout but its own (the first update, with an empty buffer, runs one after the other). A stop
     request is honoured before an update, not during its rollout. Deterministic (the same run gives the same
-    weights), but not the weights of ``false``. Not under torchrun."""
+    weights), but not the weights of ``false``. The trainer's ``time/*`` phases then overlap (their sum exceeds the
+    wall time). Not under torchrun."""
 
     def __post_init__(self) -> None:
         positive = ("lr", "rollout_steps", "seq_len", "buffer_size", "batch_sequences", "epochs")

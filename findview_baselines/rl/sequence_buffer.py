@@ -118,17 +118,17 @@ class SequenceBuffer:
             raise ValueError("the DAgger buffer is empty")
         return torch.randperm(self.size, generator=generator)[: min(count, self.size)].to(self.device)
 
-    def batch(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The chunks ``index`` (b,), time-major flattened like a rollout: obs (L*b, 3, H, W), masks (L*b,),
-        labels (L*b, 5), weights (L*b,), aux (L*b, 3) or absent, fixed (L*b, fixed_size) or absent, hidden0
-        (b, hidden)."""
+    def batch(self, index: torch.Tensor, images: bool = True) -> dict[str, torch.Tensor]:
+        """The chunks ``index`` (b,), time-major flattened like a rollout: obs (L*b, 3, H, W) (only with ``images``:
+        a trainer that reads the cached ``fixed`` rows does not need them, and gathering them is a tenth of a
+        gradient step of the robust preset), masks (L*b,), labels (L*b, 5), weights (L*b,), aux (L*b, 3) or absent,
+        fixed (L*b, fixed_size) or absent, hidden0 (b, hidden)."""
 
         def tm(x: torch.Tensor) -> torch.Tensor:
             return x[index].transpose(0, 1).flatten(0, 1)
 
-        out = {
-            "view": tm(self.view),
-            "target": tm(self.target),
+        out = {"view": tm(self.view), "target": tm(self.target)} if images else {}
+        out |= {
             "masks": tm(self.masks),
             "labels": tm(self.labels),
             "weights": tm(self.weights),
