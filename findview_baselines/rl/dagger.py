@@ -505,22 +505,21 @@ class DAggerTrainer(Trainer):
         self._acting.load_state_dict(self.policy.state_dict())
         outcome: dict[str, Any] = {}
 
-        def collect() -> None:
+        def collect() -> None:  # the global switch of the distributions' checks is this thread's, below
             try:
-                with no_distribution_validation():
-                    outcome["rollout"] = self._collect(beta, self._acting)
+                outcome["rollout"] = self._collect(beta, self._acting)
             except BaseException as error:  # re-raised in the training thread below
                 outcome["error"] = error
 
-        worker = threading.Thread(target=collect, name="findview-dagger-rollout", daemon=True)
-        worker.start()
-        try:
-            with self._timed_update():
-                with no_distribution_validation():
+        with no_distribution_validation():  # around both threads: entered and left once
+            worker = threading.Thread(target=collect, name="findview-dagger-rollout", daemon=True)
+            worker.start()
+            try:
+                with self._timed_update():
                     stats: dict[str, Any] = self._train(new_chunks)
-                self._check_weights(self.params)
-        finally:
-            worker.join()
+                    self._check_weights(self.params)
+            finally:
+                worker.join()
         if "error" in outcome:
             raise outcome["error"]
         records, rollout_stats, chunks = outcome["rollout"]
