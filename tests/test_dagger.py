@@ -238,6 +238,36 @@ def test_pan_prior_pitch_band_moves_the_pitch_first_when_the_target_is_far_above
     assert (moves <= l1_distance(p0, y0, tp, ty) + 360 - 2 * 60 + 1 + 60).all()
 
 
+def test_pan_prior_yaw_band_pans_until_the_target_is_well_into_the_view() -> None:
+    # FoV 90, band 0.5 (45 degrees): a target 60 to the left shows a 30-degree strip -> RIGHT (band 1: LEFT, into
+    # the overlap); 45 to the left (on the band) -> LEFT, 46 -> RIGHT; 60 to the right -> RIGHT either way;
+    # 10 above and 40 to the left -> the oracle's set {UP, LEFT}
+    args = (t(0, 0, 0, 0, 0), t(0, 0, 0, 0, 0), t(0, 0, 0, 0, 10), t(-60, -45, -46, 60, -40))
+    assert pan_actions(*args, fov=90).tolist() == [LEFT, LEFT, LEFT, RIGHT, UP]
+    assert pan_actions(*args, fov=90, yaw_band=0.5).tolist() == [RIGHT, LEFT, RIGHT, RIGHT, UP]
+    assert pan_action_mask(*args, fov=90, yaw_band=0.5).int().tolist() == [
+        [0, 0, 0, 1, 0], [0, 0, 1, 0, 0], [0, 0, 0, 1, 0], [0, 0, 0, 1, 0], [1, 0, 1, 0, 0]]
+    assert overlap_mask(*args, fov=90, yaw_band=0.5).tolist() == [False, True, False, False, True]
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="yaw_band"):
+            pan_actions(*args, fov=90, yaw_band=bad)
+    env = SimpleNamespace(pitch=args[0], yaw=args[1], target_pitch=args[2], target_yaw=args[3], step_deg=1,
+                          sim=SimpleNamespace(fov=90.0))
+    assert oracle_actions_for(env, search="pan", yaw_band=0.5).tolist() == [RIGHT, LEFT, RIGHT, RIGHT, UP]
+    with pytest.raises(ValueError, match="'pan' search prior only"):
+        oracle_actions_for(env, search="sweep", yaw_band=0.5)
+    # no start is trapped: every walk ends on the target, one right turn at most longer than the L1 distance
+    g = torch.Generator().manual_seed(7)
+    n = 300
+    p0, tp = torch.randint(-60, 61, (n,), generator=g), torch.randint(-60, 61, (n,), generator=g)
+    y0, ty = torch.randint(-179, 181, (n,), generator=g), torch.randint(-179, 181, (n,), generator=g)
+    moves, pitch, yaw = walk(lambda *s: pan_actions(*s, fov=90, yaw_band=0.5), p0, y0, tp, ty, 900)
+    assert (moves >= 0).all() and torch.equal(pitch, tp) and torch.equal(yaw, ty)
+    assert (moves <= l1_distance(p0, y0, tp, ty) + 360).all()
+    in_band = overlap_mask(p0, y0, tp, ty, fov=90, yaw_band=0.5)
+    assert torch.equal(moves[in_band], l1_distance(p0, y0, tp, ty)[in_band])
+
+
 def test_labels_from_an_env_object() -> None:
     env = SimpleNamespace(
         pitch=t(0, 0), yaw=t(0, 0), target_pitch=t(0, 0), target_yaw=t(-150, -20), step_deg=1,
@@ -266,6 +296,10 @@ def test_config_validation_and_beta_schedule() -> None:
         DAggerConfig(search_prior="spiral")
     with pytest.raises(ValueError, match="dagger.search_pitch_band"):
         DAggerConfig(search_pitch_band=-0.1)
+    with pytest.raises(ValueError, match="dagger.search_yaw_band"):
+        DAggerConfig(search_yaw_band=0.0)
+    with pytest.raises(ValueError, match="'pan' search prior only"):
+        DAggerConfig(search_yaw_band=0.5, search_prior="oracle")
     with pytest.raises(ValueError, match="dagger.labels"):
         DAggerConfig(labels="soft")
     cfg = DAggerConfig(beta_start=1.0, beta_end=0.2, beta_decay_updates=4)
@@ -384,6 +418,28 @@ def test_search_weight_marks_exactly_the_no_overlap_steps(panoramas) -> None:
     only_right = (labels.int() == torch.tensor([0, 0, 0, 1, 0])).all(dim=1)
     assert torch.equal(searching, only_right & searching)  # every down-weighted step is a pure "pan right"
     assert trainer.buffer.state_dict()["weights"].shape == (n, 8)
+
+
+@pytest.mark.parametrize("yaw_band", [1.0, 0.5])
+def test_trainer_labels_follow_the_search_yaw_band(panoramas, yaw_band) -> None:
+    """The trainer's labels and search weights at poses set by hand: targets 60 and 40 degrees to the left, 10 above
+    and 40 to the left, 60 to the right (FoV 90); with band 0.5 the first and the last are searches (RIGHT, weight
+    search_weight)."""
+    env = sampled_env(panoramas, 4, 32, 20, 200, seed=6)
+    policy = Policy(32, 32, variant="correlation", hidden_size=16)
+    cfg = DAggerConfig(rollout_steps=8, seq_len=8, buffer_size=100, batch_sequences=4, search_prior="pan",
+                       labels="set", search_yaw_band=yaw_band)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=10)
+    trainer.start()
+    for name, values in (("pitch", (0, 0, 0, 0)), ("yaw", (0, 0, 0, 0)), ("target_pitch", (0, 0, 10, 0)),
+                         ("target_yaw", (-60, -40, -40, 60))):
+        getattr(env, name).copy_(t(*values))
+    oracle, label, searching, leave = trainer._labels(None)
+    first = [RIGHT, [0, 0, 0, 1, 0]] if yaw_band < 1 else [LEFT, [0, 0, 1, 0, 0]]
+    assert oracle.tolist() == [first[0], LEFT, UP, RIGHT]
+    assert label.int().tolist() == [first[1], [0, 0, 1, 0, 0], [1, 0, 1, 0, 0], [0, 0, 0, 1, 0]]
+    # 60 to the right is outside the band too: its RIGHT is then the search's, weighing search_weight
+    assert searching.tolist() == [yaw_band < 1, False, False, yaw_band < 1] and not leave.any()
 
 
 def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True, revisit_penalty: float = 0.0):

@@ -47,6 +47,13 @@ Conventions (docs/TASK.md): ``+pitch`` looks up (action ``UP``), ``+yaw`` pans r
   already looked around, "back the other way" when it guessed wrong.
   The two regions do not trap a learner at their border: at ``dyaw = -fov`` the oracle moves ``LEFT``
   (into the overlap), one degree further the pan moves ``RIGHT`` (away from it, round the sphere).
+  **Yaw band** (``yaw_band``, a fraction of ``fov`` in ``(0, 1]``, default 1): the pan prior counts the target as in
+  sight only while ``|dyaw| <= yaw_band * fov`` (and ``|dpitch| <= fov``); further to the side it pans ``RIGHT``. At
+  ``|dyaw|`` near ``fov`` the two views share a strip of a few degrees, which a learner cannot tell from no overlap;
+  the overlap labels then ask it to turn back towards a target it cannot see, and the pan labels of the views just
+  beyond ask the opposite, so a learner that cannot separate them turns back and forth. With a band the labels
+  change only where the target is well into the view. Panning right always brings ``dyaw`` into the band (it
+  decreases by one a move), so no start is trapped; the border behaves as above.
 """
 
 from __future__ import annotations
@@ -176,11 +183,13 @@ def sweep_action_mask(
 
 
 def overlap_mask(
-    pitch: torch.Tensor, yaw: torch.Tensor, target_pitch: torch.Tensor, target_yaw: torch.Tensor, fov: float
+    pitch: torch.Tensor, yaw: torch.Tensor, target_pitch: torch.Tensor, target_yaw: torch.Tensor, fov: float,
+    yaw_band: float = 1.0,
 ) -> torch.Tensor:
-    """(N,) bool: ``|dpitch| <= fov`` and ``|dyaw| <= fov`` (degrees), i.e. not ``hard`` under the "or" rule."""
+    """(N,) bool: ``|dpitch| <= fov`` and ``|dyaw| <= yaw_band * fov`` (degrees); with the default band 1, not
+    ``hard`` under the "or" rule. ``yaw_band`` in ``(0, 1]`` (module docstring, "yaw band")."""
     dp, dy = _deltas(pitch, yaw, target_pitch, target_yaw)
-    return (dp.abs() <= fov) & (dy.abs() <= fov)
+    return (dp.abs() <= fov) & (dy.abs() <= _check_yaw_band(yaw_band) * fov)
 
 
 def sweep_actions(
@@ -210,6 +219,13 @@ def _check_band(pitch_band: float) -> float:
     return band
 
 
+def _check_yaw_band(yaw_band: float) -> float:
+    band = float(yaw_band)
+    if not 0.0 < band <= 1.0:
+        raise ValueError(f"yaw_band must be in (0, 1] (a fraction of the FoV), got {yaw_band!r}")
+    return band
+
+
 def _pan_search(
     dp: torch.Tensor, fov: float, pitch_band: float = 1.0, row_done: torch.Tensor | None = None,
     row_done_band: float = 0.0,
@@ -235,17 +251,19 @@ def pan_actions(
     pitch_band: float = 1.0,
     row_done: torch.Tensor | None = None,
     row_done_band: float = 0.0,
+    yaw_band: float = 1.0,
 ) -> torch.Tensor:
     """Oracle actions where the views overlap; elsewhere pan ``RIGHT`` (N,) long (a pitch move towards the
     target only while ``|dpitch| > pitch_band * fov``). See the module docstring ("pan search prior"); ``fov``
     in degrees, ``pitch_band`` a fraction of it in ``[0, 1]``. ``row_done`` (N,) bool, the searcher's own
     record that it has looked around its current row (e.g. a dead-reckoned search memory): where it is true
     the prior moves the pitch towards the target while ``|dpitch| > row_done_band * fov`` instead of panning on
-    (module docstring, "row done")."""
+    (module docstring, "row done"). ``yaw_band`` in ``(0, 1]``: the oracle's moves only while ``|dyaw| <=
+    yaw_band * fov`` (module docstring, "yaw band")."""
     oracle = oracle_actions(pitch, yaw, target_pitch, target_yaw, step_deg, order)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
     search = _pan_search(dp, fov, pitch_band, row_done, row_done_band)
-    return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
+    return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov, yaw_band), oracle, search)
 
 
 def pan_action_mask(
@@ -258,61 +276,64 @@ def pan_action_mask(
     pitch_band: float = 1.0,
     row_done: torch.Tensor | None = None,
     row_done_band: float = 0.0,
+    yaw_band: float = 1.0,
 ) -> torch.Tensor:
     """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the pan prior's one move
-    (``pitch_band``, ``row_done`` and ``row_done_band`` as in :func:`pan_actions`)."""
+    (``pitch_band``, ``row_done``, ``row_done_band`` and ``yaw_band`` as in :func:`pan_actions`)."""
     optimal = optimal_action_mask(pitch, yaw, target_pitch, target_yaw, step_deg)
     dp, _ = _deltas(pitch, yaw, target_pitch, target_yaw)
     search = torch.nn.functional.one_hot(_pan_search(dp, fov, pitch_band, row_done, row_done_band), len(Action)).bool()
-    overlap = overlap_mask(pitch, yaw, target_pitch, target_yaw, fov)
+    overlap = overlap_mask(pitch, yaw, target_pitch, target_yaw, fov, yaw_band)
     return torch.where(overlap[:, None], optimal, search)
 
 
 def _env_rotations(
-    env: Any, search: str, row_done: torch.Tensor | None = None
+    env: Any, search: str, row_done: torch.Tensor | None = None, yaw_band: float = 1.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float, int]:
     """``(pitch, yaw, target_pitch, target_yaw, fov, step_deg)`` of ``env`` after checking ``search`` (and that
-    ``row_done`` comes only with the ``pan`` prior)."""
+    ``row_done`` and a ``yaw_band`` below 1 come only with the ``pan`` prior)."""
     if search not in SEARCH_PRIORS:
         raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
     if row_done is not None and search != "pan":
         raise ValueError(f"row_done (the searcher's memory) shapes the 'pan' search prior only, got search={search!r}")
+    if _check_yaw_band(yaw_band) < 1.0 and search != "pan":
+        raise ValueError(f"yaw_band={yaw_band} shapes the 'pan' search prior only, got search={search!r}")
     step = int(getattr(env, "step_deg", 1))
     return env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step
 
 
 def oracle_actions_for(
     env: Any, order: str = "pitch_first", search: str = "oracle", pitch_band: float = 1.0,
-    row_done: torch.Tensor | None = None, row_done_band: float = 0.0,
+    row_done: torch.Tensor | None = None, row_done_band: float = 0.0, yaw_band: float = 1.0,
 ) -> torch.Tensor:
     """Labels for the environments' current observations, (N,) long on ``env.device``.
 
     Reads ``env.pitch, env.yaw, env.target_pitch, env.target_yaw`` (and ``env.step_deg``, ``env.sim.fov``).
     ``search="oracle"``: :func:`oracle_actions`; ``search="sweep"``: :func:`sweep_actions`; ``search="pan"``:
-    :func:`pan_actions` (with ``pitch_band``, ``row_done``, ``row_done_band``; the other priors refuse ``row_done``). Call it before
-    ``env.step`` to label the observation the policy acts on.
+    :func:`pan_actions` (with ``pitch_band``, ``row_done``, ``row_done_band``, ``yaw_band``; the other priors refuse
+    ``row_done`` and a ``yaw_band`` below 1). Call it before ``env.step`` to label the observation the policy acts on.
     """
-    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done)
+    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done, yaw_band)
     if search == "oracle":
         return oracle_actions(pitch, yaw, tp, ty, step, order)
     if search == "sweep":
         return sweep_actions(pitch, yaw, tp, ty, fov, step, order)
-    return pan_actions(pitch, yaw, tp, ty, fov, step, order, pitch_band, row_done, row_done_band)
+    return pan_actions(pitch, yaw, tp, ty, fov, step, order, pitch_band, row_done, row_done_band, yaw_band)
 
 
 def optimal_action_mask_for(
     env: Any, search: str = "oracle", pitch_band: float = 1.0, row_done: torch.Tensor | None = None,
-    row_done_band: float = 0.0,
+    row_done_band: float = 0.0, yaw_band: float = 1.0,
 ) -> torch.Tensor:
     """(N, 5) bool action sets of the environments' current observations (``search`` as in
     :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`,
-    ``pan`` -> :func:`pan_action_mask` with ``pitch_band``, ``row_done``, ``row_done_band``)."""
-    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done)
+    ``pan`` -> :func:`pan_action_mask` with ``pitch_band``, ``row_done``, ``row_done_band``, ``yaw_band``)."""
+    pitch, yaw, tp, ty, fov, step = _env_rotations(env, search, row_done, yaw_band)
     if search == "oracle":
         return optimal_action_mask(pitch, yaw, tp, ty, step)
     if search == "sweep":
         return sweep_action_mask(pitch, yaw, tp, ty, fov, step)
-    return pan_action_mask(pitch, yaw, tp, ty, fov, step, pitch_band, row_done, row_done_band)
+    return pan_action_mask(pitch, yaw, tp, ty, fov, step, pitch_band, row_done, row_done_band, yaw_band)
 
 
 def rotation_targets(

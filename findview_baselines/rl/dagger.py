@@ -27,7 +27,8 @@ and the target share nothing, so a learner must guess the direction there; ``"pa
 the labels of no-overlap states by "pan right until the views overlap" (``findview.task.oracle.pan_actions``),
 which a learner can follow from images alone (it only has to tell whether the views overlap;
 ``search_pitch_band`` < 1 first moves the pitch to within that fraction of a FoV of the target's, which asks the
-learner to tell from the images whether the target lies above or below);
+learner to tell from the images whether the target lies above or below; ``search_yaw_band`` < 1 keeps the pan
+labels until the target is that fraction of a FoV to the side, not where it shows only a strip of a few degrees);
 ``"sweep"`` first matches the pitch, then pans right (``sweep_actions``); a learner cannot read the
 target's pitch from a view that shares nothing with it and a greedy one ends in ``UP``/``DOWN`` two-cycles.
 
@@ -351,13 +352,14 @@ class DAggerTrainer(Trainer):
         row_done = memory[:, 0] > 0.5 if memory is not None and cfg.search_prior == "pan" else None
         towards = row_done if cfg.row_done_labels == "target" else None  # the prior's own "row done" labels
         oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards,
-                                    cfg.row_done_band).to(dev)
+                                    cfg.row_done_band, cfg.search_yaw_band).to(dev)
         if cfg.labels == "set":
             label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, towards,
-                                            cfg.row_done_band).to(dev)
+                                            cfg.row_done_band, cfg.search_yaw_band).to(dev)
         else:
             label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
-        searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov).to(dev)
+        searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov,
+                                  cfg.search_yaw_band).to(dev)
         if row_done is None:
             return oracle, label, searching, torch.zeros_like(searching)
         if cfg.row_done_labels == "rows":  # to the next search row instead, and those steps weigh fully

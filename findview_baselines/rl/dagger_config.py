@@ -61,6 +61,11 @@ class DAggerConfig:
     """``pan`` prior: where the views do not overlap, move the pitch towards the target while ``|dpitch|`` exceeds
     this fraction of the FoV, and pan right from there (1: pan at any pitch the views can overlap at; 0.5: pan
     only within half a FoV of the target's pitch, so the pan meets the target with at least half of it in view)."""
+    search_yaw_band: float = 1.0
+    """``pan`` prior: the target counts as in sight (oracle labels) only while ``|dyaw|`` is at most this fraction of
+    the FoV (and ``|dpitch| <= fov``); further to the side the labels pan right. 1: wherever the views overlap at all,
+    also by a strip of a few degrees, where a learner cannot see the target and is asked to turn back towards it
+    (``findview.task.oracle``, "yaw band"). The steps outside the band weigh ``search_weight``."""
     row_done_band: float = 0.25
     """``pan`` prior with a policy that reads its search memory (``agent.memory_inputs``): once the memory says the
     current row has been looked around, the labels move the pitch towards the target while ``|dpitch|`` exceeds
@@ -141,6 +146,13 @@ class DAggerConfig:
             raise ConfigError(
                 f"trainer.dagger.search_pitch_band must be in [0, 1] (a fraction of the FoV), got {self.search_pitch_band!r}"
             )
+        if not 0.0 < self.search_yaw_band <= 1.0:
+            raise ConfigError(
+                f"trainer.dagger.search_yaw_band must be in (0, 1] (a fraction of the FoV), got {self.search_yaw_band!r}"
+            )
+        if self.search_yaw_band < 1.0 and self.search_prior != "pan":
+            raise ConfigError(f"trainer.dagger.search_yaw_band={self.search_yaw_band} shapes the 'pan' search prior "
+                              f"only, got search_prior={self.search_prior!r}")
         for name in ("row_done_band", "memory_warm_start"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
