@@ -192,3 +192,20 @@ def test_search_bound_script_tables(tmp_path, capsys):
     (tmp_path / "bad.json").write_text(json.dumps([1, 2]))
     with pytest.raises(SystemExit, match="not a findview episode file"):
         mod.main([str(tmp_path / "bad.json")])
+
+
+def test_direction_probe_puts_each_target_exactly_its_offset_to_the_left() -> None:
+    import importlib.util
+    import pathlib
+
+    spec = importlib.util.spec_from_file_location(
+        "direction_probe", pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "direction_probe.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    probes = mod.probe_episodes(["a.jpg", "b.jpg"], per_cell=6, fov=90.0, seed=3)
+    assert len(probes) == 6 * len(mod.YAW_OFFSETS) * len(mod.PITCH_OFFSETS)
+    for ep, dy, dp, sign in probes:
+        assert -180 < ep.target_yaw <= 180 and abs(ep.target_pitch) <= 60
+        assert (ep.init_yaw - ep.target_yaw) % 360 == dy  # dy degrees to the left (yaw decreases to the left)
+        assert ep.target_pitch - ep.init_pitch == sign * dp
