@@ -310,7 +310,7 @@ class DAggerTrainer(Trainer):
             if fixed is not None:
                 fixed[t] = policy.fixed_features(obs)
             learner, new_hidden = self._learner_step(
-                obs, None if fixed is None else fixed[t], None if memory is None else memory[t], policy
+                policy, obs, None if fixed is None else fixed[t], None if memory is None else memory[t]
             )
             t1 = time.perf_counter()
             use_oracle = torch.rand(n, generator=self.mix_generator) < beta
@@ -386,14 +386,13 @@ class DAggerTrainer(Trainer):
         self.revisits.arrive(self._all_slots, self.view)
 
     def _learner_step(
-        self, obs: Mapping[str, torch.Tensor], fixed: torch.Tensor | None = None, memory: torch.Tensor | None = None,
-        policy: Policy | None = None,
+        self, policy: Policy, obs: Mapping[str, torch.Tensor], fixed: torch.Tensor | None,
+        memory: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The learner's actions, under its search memory when it has one (after :meth:`_memory_arrive`, as
-        ``PPOAgent`` acts at evaluation), and its new GRU state; ``fixed``: the observation's fixed encoder inputs,
-        when cached; ``memory``: the memory's features (N, memory_inputs), for a policy that reads them; ``policy``:
-        the weights that act (default ``self.policy``)."""
-        policy = self.policy if policy is None else policy
+        """The actions of ``policy`` (``self.policy``, or its acting copy with ``overlap_rollout``), under the search
+        memory when there is one (after :meth:`_memory_arrive`, as ``PPOAgent`` acts at evaluation), and its new GRU
+        state; ``fixed``: the observation's fixed encoder inputs, when cached; ``memory``: the memory's features
+        (N, memory_inputs), for a policy that reads them."""
         dist, _, new_hidden, _ = policy.forward_features(obs, self.hidden, self.masks, fixed=fixed, memory=memory)
         logits = dist.logits
         if self.revisits is not None:
