@@ -442,6 +442,34 @@ def test_trainer_labels_follow_the_search_yaw_band(panoramas, yaw_band) -> None:
     assert searching.tolist() == [yaw_band < 1, False, False, yaw_band < 1] and not leave.any()
 
 
+def test_search_yaw_band_after_applies_the_band_once_the_row_search_is_under_way(panoramas) -> None:
+    """search_yaw_band=0.5, search_yaw_band_after=0.5 (FoV 90: 45 degrees of the row seen): targets 60 degrees to the
+    left and 60 to the right, each once at the start of a row (1 degree seen: band 1, so LEFT towards the first, at
+    full weight) and once under way (45 and 200 degrees seen: band 0.5, RIGHT, weight search_weight)."""
+    with pytest.raises(ValueError, match="search_yaw_band_after"):
+        DAggerConfig(search_yaw_band_after=0.5)  # band 1: nothing to delay
+    with pytest.raises(ValueError, match="search_yaw_band_after"):
+        DAggerConfig(search_yaw_band=0.5, search_yaw_band_after=-1.0)
+    cfg = DAggerConfig(rollout_steps=8, seq_len=8, buffer_size=100, batch_sequences=4, search_prior="pan",
+                       labels="set", search_weight=0.25, search_yaw_band=0.5, search_yaw_band_after=0.5)
+    with pytest.raises(ValueError, match="memory_inputs"):
+        DAggerTrainer(sampled_env(panoramas, 4, 32, 20, 200, seed=6), Policy(32, 32, variant="direct", hidden_size=16),
+                      cfg, total_updates=10, revisit_penalty=2.0)
+    env = sampled_env(panoramas, 4, 32, 20, 200, seed=6)
+    policy = Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2, memory_inputs=MEMORY_FEATURES)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=10, revisit_penalty=2.0)
+    trainer.start()
+    for name, values in (("pitch", (0, 0, 0, 0)), ("yaw", (0, 0, 0, 0)), ("target_pitch", (0, 0, 0, 0)),
+                         ("target_yaw", (-60, 60, -60, 60))):
+        getattr(env, name).copy_(t(*values))
+    memory = torch.zeros(4, MEMORY_FEATURES)
+    memory[:, 1] = torch.tensor([1.0, 1.0, 45.0, 200.0]) / 360  # degrees of the row seen, as a share of a turn
+    oracle, label, searching, leave = trainer._labels(memory)
+    assert oracle.tolist() == [LEFT, RIGHT, RIGHT, RIGHT]
+    assert label.int().tolist() == [[0, 0, 1, 0, 0], [0, 0, 0, 1, 0], [0, 0, 0, 1, 0], [0, 0, 0, 1, 0]]
+    assert searching.tolist() == [False, False, True, True] and not leave.any()
+
+
 def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True, revisit_penalty: float = 0.0):
     """A small DAgger run (correlation policy, aux loss on, set labels, tiny FIFO buffer that wraps, curriculum);
     resumes from ``state`` when given."""

@@ -28,7 +28,9 @@ the labels of no-overlap states by "pan right until the views overlap" (``findvi
 which a learner can follow from images alone (it only has to tell whether the views overlap;
 ``search_pitch_band`` < 1 first moves the pitch to within that fraction of a FoV of the target's, which asks the
 learner to tell from the images whether the target lies above or below; ``search_yaw_band`` < 1 keeps the pan
-labels until the target is that fraction of a FoV to the side, not where it shows only a strip of a few degrees);
+labels until the target is that fraction of a FoV to the side, not where it shows only a strip of a few degrees;
+``search_yaw_band_after`` > 0 applies that band only once the search memory has seen that many FoVs of the current
+row, so a target half out of view at the episode's start or on a row just reached is still turned to);
 ``"sweep"`` first matches the pitch, then pans right (``sweep_actions``); a learner cannot read the
 target's pitch from a view that shares nothing with it and a greedy one ends in ``UP``/``DOWN`` two-cycles.
 
@@ -217,6 +219,9 @@ class DAggerTrainer(Trainer):
                 raise ValueError("trainer.dagger.overlap_rollout=true is not supported under torchrun (its collectives "
                                  "would run in two threads); set it to false")
             self._acting = copy.deepcopy(policy).requires_grad_(False)
+        if cfg.search_yaw_band_after > 0 and not self.memory_band:
+            raise ValueError(f"trainer.dagger.search_yaw_band_after={cfg.search_yaw_band_after} reads how much of the "
+                             f"row the search memory has seen: it needs agent.memory_inputs=true")
         if cfg.penalised_loss == "rows" and not self.memory_band:  # no memory inputs: no step ever leaves a done row
             raise ValueError("trainer.dagger.penalised_loss=rows penalises the steps that leave a looked-around row: "
                              "it needs agent.memory_inputs=true")
@@ -351,15 +356,25 @@ class DAggerTrainer(Trainer):
         fov = float(env.sim.fov)
         row_done = memory[:, 0] > 0.5 if memory is not None and cfg.search_prior == "pan" else None
         towards = row_done if cfg.row_done_labels == "target" else None  # the prior's own "row done" labels
-        oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards,
-                                    cfg.row_done_band, cfg.search_yaw_band).to(dev)
-        if cfg.labels == "set":
-            label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, towards,
-                                            cfg.row_done_band, cfg.search_yaw_band).to(dev)
-        else:
-            label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
-        searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov,
-                                  cfg.search_yaw_band).to(dev)
+
+        def labels_in(band: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards,
+                                        cfg.row_done_band, band).to(dev)
+            if cfg.labels == "set":
+                label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, towards,
+                                                cfg.row_done_band, band).to(dev)
+            else:
+                label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
+            searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov, band).to(dev)
+            return oracle, label, searching
+
+        oracle, label, searching = labels_in(cfg.search_yaw_band)
+        if memory is not None and cfg.search_yaw_band_after > 0:  # band 1 until the row's search is under way
+            before = memory[:, 1] * 360.0 < cfg.search_yaw_band_after * fov
+            oracle_1, label_1, searching_1 = labels_in(1.0)
+            oracle = torch.where(before, oracle_1, oracle)
+            label = torch.where(before[:, None], label_1, label)
+            searching = torch.where(before, searching_1, searching)
         if row_done is None:
             return oracle, label, searching, torch.zeros_like(searching)
         if cfg.row_done_labels == "rows":  # to the next search row instead, and those steps weigh fully

@@ -66,6 +66,12 @@ class DAggerConfig:
     the FoV (and ``|dpitch| <= fov``); further to the side the labels pan right. 1: wherever the views overlap at all,
     also by a strip of a few degrees, where a learner cannot see the target and is asked to turn back towards it
     (``findview.task.oracle``, "yaw band"). The steps outside the band weigh ``search_weight``."""
+    search_yaw_band_after: float = 0.0
+    """With ``agent.memory_inputs`` and ``search_yaw_band`` < 1: the band applies only once the search is under way in
+    the current row, i.e. once the search memory has seen at least this many FoVs of yaw there (its second input, the
+    share of a turn seen around the current row, times 360 degrees); before that (the episode's start, a row just
+    reached) the labels use band 1 and turn towards any target that overlaps the view. 0: the band applies
+    everywhere."""
     row_done_band: float = 0.25
     """``pan`` prior with a policy that reads its search memory (``agent.memory_inputs``): once the memory says the
     current row has been looked around, the labels move the pitch towards the target while ``|dpitch|`` exceeds
@@ -153,6 +159,12 @@ class DAggerConfig:
         if self.search_yaw_band < 1.0 and self.search_prior != "pan":
             raise ConfigError(f"trainer.dagger.search_yaw_band={self.search_yaw_band} shapes the 'pan' search prior "
                               f"only, got search_prior={self.search_prior!r}")
+        if not 0.0 <= self.search_yaw_band_after <= 4.0:
+            raise ConfigError(f"trainer.dagger.search_yaw_band_after must be in [0, 4] (FoVs of yaw seen in the row), "
+                              f"got {self.search_yaw_band_after!r}")
+        if self.search_yaw_band_after > 0 and self.search_yaw_band == 1.0:
+            raise ConfigError(f"trainer.dagger.search_yaw_band_after={self.search_yaw_band_after} delays the yaw band: "
+                              f"it needs trainer.dagger.search_yaw_band < 1")
         for name in ("row_done_band", "memory_warm_start"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"trainer.dagger.{name} must be in [0, 1], got {getattr(self, name)!r}")
