@@ -227,6 +227,8 @@ def test_pan_prior_pitch_band_moves_the_pitch_first_when_the_target_is_far_above
     assert pan_actions(t(0), t(0), t(-1), t(-150), fov=60, pitch_band=0.0).tolist() == [DOWN]
     with pytest.raises(ValueError, match="pitch_band"):
         pan_actions(*args, fov=60, pitch_band=1.5)
+    with pytest.raises(ValueError, match=r"row_done_band must be in \[0, 1\]"):  # the message names the argument
+        pan_actions(*args, fov=60, row_done=torch.ones(3, dtype=torch.bool), row_done_band=-0.5)
     # it always arrives: a walk from random starts ends on the target, the pan starting within 30 degrees
     g = torch.Generator().manual_seed(5)
     n = 300

@@ -189,7 +189,7 @@ def overlap_mask(
     """(N,) bool: ``|dpitch| <= fov`` and ``|dyaw| <= yaw_band * fov`` (degrees); with the default band 1, not
     ``hard`` under the "or" rule. ``yaw_band`` in ``(0, 1]`` (module docstring, "yaw band")."""
     dp, dy = _deltas(pitch, yaw, target_pitch, target_yaw)
-    return (dp.abs() <= fov) & (dy.abs() <= _check_yaw_band(yaw_band) * fov)
+    return (dp.abs() <= fov) & (dy.abs() <= _check_band("yaw_band", yaw_band, allow_zero=False) * fov)
 
 
 def sweep_actions(
@@ -212,17 +212,13 @@ def sweep_actions(
     return torch.where(overlap_mask(pitch, yaw, target_pitch, target_yaw, fov), oracle, search)
 
 
-def _check_band(pitch_band: float) -> float:
-    band = float(pitch_band)
-    if not 0.0 <= band <= 1.0:
-        raise ValueError(f"pitch_band must be in [0, 1] (a fraction of the FoV), got {pitch_band!r}")
-    return band
-
-
-def _check_yaw_band(yaw_band: float) -> float:
-    band = float(yaw_band)
-    if not 0.0 < band <= 1.0:
-        raise ValueError(f"yaw_band must be in (0, 1] (a fraction of the FoV), got {yaw_band!r}")
+def _check_band(name: str, value: float, allow_zero: bool = True) -> float:
+    """``value`` as a float after checking that it is a fraction of the FoV: in ``[0, 1]`` (``(0, 1]`` when not
+    ``allow_zero``); the error names the argument ``name``."""
+    band = float(value)
+    if not (0.0 <= band if allow_zero else 0.0 < band) or band > 1.0:
+        interval = "[0, 1]" if allow_zero else "(0, 1]"
+        raise ValueError(f"{name} must be in {interval} (a fraction of the FoV), got {value!r}")
     return band
 
 
@@ -234,9 +230,9 @@ def _pan_search(
     ``|dp| > pitch_band * fov`` or, where ``row_done`` (N,) bool is true, while ``|dp| > row_done_band * fov``;
     else ``RIGHT``)."""
     pitch_move = torch.where(dp > 0, int(Action.UP), int(Action.DOWN))
-    move_pitch = dp.abs() > _check_band(pitch_band) * fov
+    move_pitch = dp.abs() > _check_band("pitch_band", pitch_band) * fov
     if row_done is not None:
-        move_pitch = move_pitch | (row_done.to(dp.device).bool() & (dp.abs() > _check_band(row_done_band) * fov))
+        move_pitch = move_pitch | (row_done.to(dp.device).bool() & (dp.abs() > _check_band("row_done_band", row_done_band) * fov))
     return torch.where(move_pitch, pitch_move, torch.full_like(dp, int(Action.RIGHT)))
 
 
@@ -296,7 +292,7 @@ def _env_rotations(
         raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
     if row_done is not None and search != "pan":
         raise ValueError(f"row_done (the searcher's memory) shapes the 'pan' search prior only, got search={search!r}")
-    if _check_yaw_band(yaw_band) < 1.0 and search != "pan":
+    if _check_band("yaw_band", yaw_band, allow_zero=False) < 1.0 and search != "pan":
         raise ValueError(f"yaw_band={yaw_band} shapes the 'pan' search prior only, got search={search!r}")
     step = int(getattr(env, "step_deg", 1))
     return env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step
