@@ -422,9 +422,9 @@ class DAggerTrainer(Trainer):
         steps = max(1, math.ceil(cfg.epochs * new_chunks / cfg.batch_sequences))
         totals: dict[str, float] = {}
         self.policy.train()
+        # with the cached fixed inputs the network never reads the images: they are not gathered
+        cached = self.buffer.fixed is not None
         for _ in range(steps):
-            # with the cached fixed inputs the network never reads the images: they are not gathered
-            cached = self.buffer.fixed is not None
             b = self.buffer.batch(self.buffer.sample(cfg.batch_sequences, self.sample_generator), images=not cached)
             obs = None if cached else {"view": b["view"], "target": b["target"]}
             dist, _, _, features = self.policy.forward_features(
