@@ -71,7 +71,8 @@ class DAggerConfig:
     the current row, i.e. once the search memory has seen at least this many FoVs of yaw there (its second input, the
     share of a turn seen around the current row, times 360 degrees); before that (the episode's start, a row just
     reached) the labels use band 1 and turn towards any target that overlaps the view. 0: the band applies
-    everywhere."""
+    everywhere. Measured once (0.5 with band 0.5, FoV 90, benchmarks/RESULTS.md "Session 26"): easy SPL back to band
+    1's, but wrong stops on a clean forest panorama; no preset uses it."""
     row_done_band: float = 0.25
     """``pan`` prior with a policy that reads its search memory (``agent.memory_inputs``): once the memory says the
     current row has been looked around, the labels move the pitch towards the target while ``|dpitch|`` exceeds
