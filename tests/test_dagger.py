@@ -250,6 +250,11 @@ def test_pan_prior_yaw_band_pans_until_the_target_is_well_into_the_view() -> Non
     assert pan_action_mask(*args, fov=90, yaw_band=0.5).int().tolist() == [
         [0, 0, 0, 1, 0], [0, 0, 1, 0, 0], [0, 0, 0, 1, 0], [0, 0, 0, 1, 0], [1, 0, 1, 0, 0]]
     assert overlap_mask(*args, fov=90, yaw_band=0.5).tolist() == [False, True, False, False, True]
+    # one band per environment: band 1 for the first two, 0.5 for the rest
+    per_env = torch.tensor([1.0, 1.0, 0.5, 0.5, 0.5])
+    assert pan_actions(*args, fov=90, yaw_band=per_env).tolist() == [LEFT, LEFT, RIGHT, RIGHT, UP]
+    with pytest.raises(ValueError, match="yaw_band"):
+        overlap_mask(*args, fov=90, yaw_band=torch.tensor([1.0, 0.0, 0.5, 0.5, 0.5]))
     for bad in (0.0, 1.5):
         with pytest.raises(ValueError, match="yaw_band"):
             pan_actions(*args, fov=90, yaw_band=bad)
@@ -470,6 +475,8 @@ def test_search_yaw_band_after_applies_the_band_once_the_row_search_is_under_way
     assert oracle.tolist() == [LEFT, RIGHT, RIGHT, RIGHT]
     assert label.int().tolist() == [[0, 0, 1, 0, 0], [0, 0, 0, 1, 0], [0, 0, 0, 1, 0], [0, 0, 0, 1, 0]]
     assert searching.tolist() == [False, False, True, True] and not leave.any()
+    trainer.train_update()  # a whole update labels with one band per environment
+    assert len(trainer.buffer) == 4 * cfg.rollout_steps // cfg.seq_len
 
 
 def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True, revisit_penalty: float = 0.0):

@@ -53,7 +53,8 @@ Conventions (docs/TASK.md): ``+pitch`` looks up (action ``UP``), ``+yaw`` pans r
   the overlap labels then ask it to turn back towards a target it cannot see, and the pan labels of the views just
   beyond ask the opposite, so a learner that cannot separate them turns back and forth. With a band the labels
   change only where the target is well into the view. Panning right always brings ``dyaw`` into the band (it
-  decreases by one a move), so no start is trapped; the border behaves as above.
+  decreases by one a move), so no start is trapped; the border behaves as above. ``yaw_band`` is one number or an
+  (N,) tensor, one band per environment (a trainer that widens the band at the start of a search).
 """
 
 from __future__ import annotations
@@ -184,12 +185,13 @@ def sweep_action_mask(
 
 def overlap_mask(
     pitch: torch.Tensor, yaw: torch.Tensor, target_pitch: torch.Tensor, target_yaw: torch.Tensor, fov: float,
-    yaw_band: float = 1.0,
+    yaw_band: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """(N,) bool: ``|dpitch| <= fov`` and ``|dyaw| <= yaw_band * fov`` (degrees); with the default band 1, not
-    ``hard`` under the "or" rule. ``yaw_band`` in ``(0, 1]`` (module docstring, "yaw band")."""
+    ``hard`` under the "or" rule. ``yaw_band`` in ``(0, 1]``, one number or (N,) per environment (module docstring,
+    "yaw band")."""
     dp, dy = _deltas(pitch, yaw, target_pitch, target_yaw)
-    return (dp.abs() <= fov) & (dy.abs() <= _check_band("yaw_band", yaw_band, allow_zero=False) * fov)
+    return (dp.abs() <= fov) & (dy.abs() <= _check_yaw_band(yaw_band) * fov)
 
 
 def sweep_actions(
@@ -222,6 +224,15 @@ def _check_band(name: str, value: float, allow_zero: bool = True) -> float:
     return band
 
 
+def _check_yaw_band(yaw_band: float | torch.Tensor) -> float | torch.Tensor:
+    """``yaw_band`` after :func:`_check_band` (``(0, 1]``) of each of its values: a float, or the (N,) tensor itself."""
+    if isinstance(yaw_band, torch.Tensor):
+        for extreme in (yaw_band.min(), yaw_band.max()):
+            _check_band("yaw_band", float(extreme), allow_zero=False)
+        return yaw_band
+    return _check_band("yaw_band", yaw_band, allow_zero=False)
+
+
 def _pan_search(
     dp: torch.Tensor, fov: float, pitch_band: float = 1.0, row_done: torch.Tensor | None = None,
     row_done_band: float = 0.0,
@@ -247,7 +258,7 @@ def pan_actions(
     pitch_band: float = 1.0,
     row_done: torch.Tensor | None = None,
     row_done_band: float = 0.0,
-    yaw_band: float = 1.0,
+    yaw_band: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """Oracle actions where the views overlap; elsewhere pan ``RIGHT`` (N,) long (a pitch move towards the
     target only while ``|dpitch| > pitch_band * fov``). See the module docstring ("pan search prior"); ``fov``
@@ -272,7 +283,7 @@ def pan_action_mask(
     pitch_band: float = 1.0,
     row_done: torch.Tensor | None = None,
     row_done_band: float = 0.0,
-    yaw_band: float = 1.0,
+    yaw_band: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """(N, 5) bool: :func:`optimal_action_mask` where the views overlap; elsewhere the pan prior's one move
     (``pitch_band``, ``row_done``, ``row_done_band`` and ``yaw_band`` as in :func:`pan_actions`)."""
@@ -284,7 +295,7 @@ def pan_action_mask(
 
 
 def _env_rotations(
-    env: Any, search: str, row_done: torch.Tensor | None = None, yaw_band: float = 1.0
+    env: Any, search: str, row_done: torch.Tensor | None = None, yaw_band: float | torch.Tensor = 1.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float, int]:
     """``(pitch, yaw, target_pitch, target_yaw, fov, step_deg)`` of ``env`` after checking ``search`` (and that
     ``row_done`` and a ``yaw_band`` below 1 come only with the ``pan`` prior)."""
@@ -292,7 +303,7 @@ def _env_rotations(
         raise ValueError(f"search prior must be one of {SEARCH_PRIORS}, got {search!r}")
     if row_done is not None and search != "pan":
         raise ValueError(f"row_done (the searcher's memory) shapes the 'pan' search prior only, got search={search!r}")
-    if _check_band("yaw_band", yaw_band, allow_zero=False) < 1.0 and search != "pan":
+    if bool(torch.as_tensor(_check_yaw_band(yaw_band)).lt(1.0).any()) and search != "pan":
         raise ValueError(f"yaw_band={yaw_band} shapes the 'pan' search prior only, got search={search!r}")
     step = int(getattr(env, "step_deg", 1))
     return env.pitch, env.yaw, env.target_pitch, env.target_yaw, float(env.sim.fov), step
@@ -300,7 +311,7 @@ def _env_rotations(
 
 def oracle_actions_for(
     env: Any, order: str = "pitch_first", search: str = "oracle", pitch_band: float = 1.0,
-    row_done: torch.Tensor | None = None, row_done_band: float = 0.0, yaw_band: float = 1.0,
+    row_done: torch.Tensor | None = None, row_done_band: float = 0.0, yaw_band: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """Labels for the environments' current observations, (N,) long on ``env.device``.
 
@@ -319,7 +330,7 @@ def oracle_actions_for(
 
 def optimal_action_mask_for(
     env: Any, search: str = "oracle", pitch_band: float = 1.0, row_done: torch.Tensor | None = None,
-    row_done_band: float = 0.0, yaw_band: float = 1.0,
+    row_done_band: float = 0.0, yaw_band: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """(N, 5) bool action sets of the environments' current observations (``search`` as in
     :func:`oracle_actions_for`: ``oracle`` -> :func:`optimal_action_mask`, ``sweep`` -> :func:`sweep_action_mask`,

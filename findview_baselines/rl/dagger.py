@@ -356,25 +356,18 @@ class DAggerTrainer(Trainer):
         fov = float(env.sim.fov)
         row_done = memory[:, 0] > 0.5 if memory is not None and cfg.search_prior == "pan" else None
         towards = row_done if cfg.row_done_labels == "target" else None  # the prior's own "row done" labels
-
-        def labels_in(band: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-            oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards,
-                                        cfg.row_done_band, band).to(dev)
-            if cfg.labels == "set":
-                label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, towards,
-                                                cfg.row_done_band, band).to(dev)
-            else:
-                label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
-            searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov, band).to(dev)
-            return oracle, label, searching
-
-        oracle, label, searching = labels_in(cfg.search_yaw_band)
+        band: float | torch.Tensor = cfg.search_yaw_band
         if memory is not None and cfg.search_yaw_band_after > 0:  # band 1 until the row's search is under way
             before = memory[:, 1] * 360.0 < cfg.search_yaw_band_after * fov
-            oracle_1, label_1, searching_1 = labels_in(1.0)
-            oracle = torch.where(before, oracle_1, oracle)
-            label = torch.where(before[:, None], label_1, label)
-            searching = torch.where(before, searching_1, searching)
+            band = torch.where(before, 1.0, cfg.search_yaw_band).to(env.pitch.device)
+        oracle = oracle_actions_for(env, cfg.order, cfg.search_prior, cfg.search_pitch_band, towards,
+                                    cfg.row_done_band, band).to(dev)
+        if cfg.labels == "set":
+            label = optimal_action_mask_for(env, cfg.search_prior, cfg.search_pitch_band, towards,
+                                            cfg.row_done_band, band).to(dev)
+        else:
+            label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
+        searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov, band).to(dev)
         if row_done is None:
             return oracle, label, searching, torch.zeros_like(searching)
         if cfg.row_done_labels == "rows":  # to the next search row instead, and those steps weigh fully
