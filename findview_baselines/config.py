@@ -272,6 +272,11 @@ class PPOAgentConfig:
     stop_prob: Optional[float] = None
     """At validation / evaluation: STOP whenever the policy gives STOP at least this probability, even when a move
     has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
+    stop_min_prob: Optional[float] = None
+    """At validation / evaluation: refuse a STOP the policy gives less than this probability; the slot takes its most
+    likely move instead (after the search memory's penalty), so an unsure stop on a look-alike view does not end the
+    episode. Use it with ``stop_by``: a slot that finds nothing surer walks back to its most stop-like pose at the end.
+    null = every STOP of the argmax (or the sample) stands. At most ``stop_prob``."""
     stop_by: int = 0
     """At evaluation, with the search memory on: the step by which the agent stops (set it to T, task.max_steps).
     A slot that has not stopped when the steps left are just enough walks back to the (dead-reckoned) pose where the
@@ -305,6 +310,10 @@ class PPOAgentConfig:
         check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
         check(self.stop_prob is None or 0 < self.stop_prob <= 1, "agent.stop_prob", self.stop_prob,
               "null or a probability in (0, 1]")
+        check(self.stop_min_prob is None or 0 < self.stop_min_prob <= 1, "agent.stop_min_prob", self.stop_min_prob,
+              "null or a probability in (0, 1]")
+        check(self.stop_min_prob is None or self.stop_prob is None or self.stop_min_prob <= self.stop_prob,
+              "agent.stop_min_prob", self.stop_min_prob, f"at most agent.stop_prob={self.stop_prob}")
         check(self.stop_by >= 0, "agent.stop_by", self.stop_by, "0 (off) or a step number (T)")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")

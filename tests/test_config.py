@@ -95,6 +95,9 @@ def test_robust_memory_starts_from_where_the_robust_preset_writes_its_best_check
         ("eval", ["agent=bogus"], "unknown agent 'bogus'; valid: oracle, orb, ppo, random, rotation, sift"),
         ("eval", ["corruption.severity=7"], "corruption.severity=7: expected an integer 1-5"),
         ("eval", ["dataset.hard_rule=xor"], "dataset.hard_rule='xor': expected or | and"),
+        ("eval", ["agent=ppo", "agent.stop_min_prob=0"], "agent.stop_min_prob=0.0: expected null or a probability in (0, 1]"),
+        ("eval", ["agent=ppo", "agent.stop_prob=0.3", "agent.stop_min_prob=0.5"],
+         "agent.stop_min_prob=0.5: expected at most agent.stop_prob=0.3"),
     ],
 )
 def test_bad_values_fail_at_compose_time_naming_the_key(config_name: str, overrides: list[str], expected: str) -> None:

@@ -204,3 +204,45 @@ def test_stop_prob_stops_on_the_policys_own_stop_probability():
     assert first_action(stop_prob=0.31) == RIGHT
     with pytest.raises(ValueError, match="stop_prob"):
         PPOAgent(policy, 1, stop_prob=0.0)
+
+
+def test_stop_min_prob_refuses_an_unsure_stop_for_the_most_likely_move():
+    """A policy fixed at P = (0.1, 0.05, 0.15, 0.2, 0.5) for (UP, DOWN, LEFT, RIGHT, STOP): the argmax stops. With
+    ``stop_min_prob`` 0.51 the stop is refused and the agent takes the most likely move, RIGHT, with the search
+    memory on as well; a sampling agent never draws STOP. 0.49 lets the stop stand; a threshold above ``stop_prob`` is refused."""
+    from findview.episode import Episode
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.rl.policy import Policy
+
+    policy = Policy(32, 32, "direct", hidden_size=8)
+    with torch.no_grad():
+        policy.actor.weight.zero_()
+        policy.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.05, 0.15, 0.2, 0.5])))
+    obs = {"view": torch.zeros(1, 3, 32, 32, dtype=torch.uint8), "target": torch.zeros(1, 3, 32, 32, dtype=torch.uint8)}
+
+    def actions(steps: int = 1, **kw) -> list[int]:
+        agent = PPOAgent(policy, 1, **kw)
+        agent.reset([0], [Episode("e", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=1)])
+        return [int(agent.act(obs)[0]) for _ in range(steps)]
+
+    assert actions() == [STOP]
+    assert actions(stop_min_prob=0.49) == [STOP]
+    assert actions(stop_min_prob=0.51) == [RIGHT]
+    # with the memory the refused stop leaves the moves to the memory, as a policy that has no STOP at all would
+    no_stop = Policy(32, 32, "direct", hidden_size=8)
+    with torch.no_grad():
+        no_stop.actor.weight.zero_()
+        no_stop.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.05, 0.15, 0.2, 1e-30])))
+    reference = PPOAgent(no_stop, 1, revisit_penalty=16.0)
+    reference.reset([0], [Episode("e", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=1)])
+    expected = [int(reference.act(obs)[0]) for _ in range(6)]
+    assert expected[0] == RIGHT and len(set(expected)) > 1  # the memory does steer it
+    assert actions(6, stop_min_prob=0.51, revisit_penalty=16.0) == expected
+    # sampling: STOP (half the mass) is never drawn, the moves keep their odds among themselves
+    sampled = actions(200, stop_min_prob=0.51, sample=True)
+    assert STOP not in sampled and sampled.count(RIGHT) > sampled.count(DOWN)
+    assert actions(stop_min_prob=0.5, stop_prob=0.5) == [STOP]  # stop_prob forces what stop_min_prob allows
+    with pytest.raises(ValueError, match="stop_min_prob"):
+        PPOAgent(policy, 1, stop_min_prob=0.0)
+    with pytest.raises(ValueError, match="stop_min_prob"):
+        PPOAgent(policy, 1, stop_prob=0.3, stop_min_prob=0.4)

@@ -20,6 +20,10 @@
   A network built with ``memory_inputs`` (in its checkpoint signature) also reads that memory's features each step
   (:meth:`~findview_baselines.rl.search_memory.RevisitPenalty.memory_features`: has it looked around its row?), and
   needs the memory on and the views' ``fov``.
+- ``stop_min_prob``: a STOP the policy answers with a probability below it is refused, and the slot takes its most
+  likely move instead (after the search memory's penalty), so an unsure stop on a view that only looks like the
+  target does not end the episode; with ``stop_by`` the slot still comes back to its most stop-like pose if it finds
+  nothing surer.
 - ``stop_by > 0`` (needs the search memory; set it to ``T``): a slot that has not stopped when the steps left are
   just enough walks back to the dead-reckoned pose where the policy's STOP probability was highest and stops
   there (:mod:`findview_baselines.agents.give_up`), instead of running out of steps wherever it is.
@@ -85,6 +89,8 @@ class PPOAgent(Agent):
             policy's stops (``None``: the policy's stops stand).
         stop_prob: STOP whenever the policy gives STOP at least this probability, even when a move has more
             (``None``: the argmax, or the sample, decides).
+        stop_min_prob: refuse the policy's STOP when its probability is below this, and take the most likely move
+            instead (``None``: every STOP of the argmax, or the sample, stands). At most ``stop_prob``.
         fov: the views' horizontal field of view, degrees; required when the policy reads its search memory
             (``memory_inputs``: the memory's row band is half a FoV, :func:`~findview_baselines.rl.search_memory.memory_band`).
         stop_by: the step by which a slot stops (``T``): when the steps left are just enough, a slot that has not
@@ -107,11 +113,18 @@ class PPOAgent(Agent):
         stop_prob: float | None = None,
         fov: float | None = None,
         stop_by: int = 0,
+        stop_min_prob: float | None = None,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
+        if stop_min_prob is not None and not 0.0 < float(stop_min_prob) <= 1.0:
+            raise ValueError(f"stop_min_prob must be in (0, 1] or None, got {stop_min_prob!r}")
+        if stop_prob is not None and stop_min_prob is not None and float(stop_min_prob) > float(stop_prob):
+            raise ValueError(f"stop_min_prob={stop_min_prob} refuses stops that stop_prob={stop_prob} forces: "
+                             f"expected stop_min_prob <= stop_prob")
         super().__init__(num_envs, device, seed)
         self.stop_prob = None if stop_prob is None else float(stop_prob)
+        self.stop_min_prob = None if stop_min_prob is None else float(stop_min_prob)
         self.policy = policy.to(self.device).eval()
         self.sample = bool(sample)
         self.hidden = policy.initial_hidden(self.num_envs, self.device)
@@ -159,6 +172,7 @@ class PPOAgent(Agent):
         stop_prob: float | None = None,
         fov: float | None = None,
         stop_by: int = 0,
+        stop_min_prob: float | None = None,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -206,7 +220,7 @@ class PPOAgent(Agent):
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov,
-            stop_by,
+            stop_by, stop_min_prob,
         )
 
     @classmethod
@@ -231,7 +245,7 @@ class PPOAgent(Agent):
             checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
             refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
-            stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by,
+            stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -328,12 +342,15 @@ class PPOAgent(Agent):
         else:
             self.hidden[idx] = h_new
         logits = dist.logits
+        if self.stop_min_prob is not None:  # an unsure STOP is no option: the moves decide (memory included)
+            logits = logits.clone()
+            logits[dist.probs[:, STOP] < self.stop_min_prob, STOP] = float("-inf")
         if self.memory_band:
             logits = self.revisits.penalise(idx, logits)
         elif self.revisits is not None:
             logits = self.revisits.adjust(idx, v, logits)
         if self.sample:
-            p_t = dist.probs if self.revisits is None else torch.softmax(logits, dim=-1)
+            p_t = dist.probs if logits is dist.logits else torch.softmax(logits, dim=-1)
             probs = p_t.double().cpu().numpy()
             cdf = np.cumsum(probs, axis=1)
             u = np.array([self._rngs[i].random() for i in work])
