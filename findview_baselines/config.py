@@ -282,6 +282,12 @@ class PPOAgentConfig:
     A slot that has not stopped when the steps left are just enough walks back to the (dead-reckoned) pose where the
     policy's STOP probability was highest and stops there, instead of running out of steps wherever it is; episodes
     the agent ends by itself are unchanged. 0 = off. See findview_baselines/agents/give_up.py."""
+    stop_by_phase: bool = False
+    """With ``stop_by``: a slot whose STOP probability never reached 0.1 (a target the stop head does not recognise,
+    e.g. under heavy fog) walks instead to the pose that phase correlation of view and target pointed at most clearly
+    over its search (measured every step on the views averaged to at most 128 pixels wide; the pose where it was
+    measured plus the rotation measured there) and stops there. Episodes that stop by themselves, or whose STOP
+    probability reached 0.1, are unchanged. false = off."""
     fov: float = 90.0
     """Horizontal field of view of the views, degrees (the refinement's pixels-to-degrees; configs/agent/ppo.yaml
     sets it to ${sim.fov})."""
@@ -315,6 +321,8 @@ class PPOAgentConfig:
         check(self.stop_min_prob is None or self.stop_prob is None or self.stop_min_prob <= self.stop_prob,
               "agent.stop_min_prob", self.stop_min_prob, f"at most agent.stop_prob={self.stop_prob}")
         check(self.stop_by >= 0, "agent.stop_by", self.stop_by, "0 (off) or a step number (T)")
+        check(not self.stop_by_phase or self.stop_by > 0, "agent.stop_by", self.stop_by,
+              "a step number (T) with agent.stop_by_phase=true")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
         check(not self.memory_inputs or self.revisit_penalty > 0, "agent.revisit_penalty", self.revisit_penalty,

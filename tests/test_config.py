@@ -98,6 +98,8 @@ def test_robust_memory_starts_from_where_the_robust_preset_writes_its_best_check
         ("eval", ["agent=ppo", "agent.stop_min_prob=0"], "agent.stop_min_prob=0.0: expected null or a probability in (0, 1]"),
         ("eval", ["agent=ppo", "agent.stop_prob=0.3", "agent.stop_min_prob=0.5"],
          "agent.stop_min_prob=0.5: expected at most agent.stop_prob=0.3"),
+        ("eval", ["agent=ppo", "agent.stop_by_phase=true"],
+         "agent.stop_by=0: expected a step number (T) with agent.stop_by_phase=true"),
     ],
 )
 def test_bad_values_fail_at_compose_time_naming_the_key(config_name: str, overrides: list[str], expected: str) -> None:

@@ -121,3 +121,107 @@ def test_stop_by_needs_the_search_memory():
 
     with pytest.raises(ValueError, match="search memory"):
         PPOAgent(RingPolicy(0, 0.3), 1, stop_by=1000)
+    with pytest.raises(ValueError, match="stop_by_phase"):
+        PPOAgent(RingPolicy(0, 0.3), 1, revisit_penalty=16.0, fov=90.0, stop_by_phase=True)  # no stop_by
+    with pytest.raises(ValueError, match="stop_by_phase"):
+        PPOAgent(RingPolicy(0, 0.3), 1, revisit_penalty=16.0, stop_by=1000, stop_by_phase=True)  # no fov
+
+
+def test_phase_goal_is_the_pose_plus_the_shift_measured_at_the_clearest_peak():
+    """Two measurements: the clearer one (peak 0.4 at (2, 10), target measured 3.4 degrees up and 5.6 to the left)
+    sets the goal to (2 + 3, 10 - 6) = (5, 4); a stop head that reached min_prob walks to its own best pose instead."""
+    g = GiveUp(2, stop_by=50, yaw_cells=360, min_prob=0.1, phase=True)
+    idx = torch.tensor([0, 1])
+    g.observe_phase(idx, torch.tensor([0.4, 0.4]), torch.tensor([2, 2]), torch.tensor([10, 10]),
+                    torch.tensor([3.4, 3.4]), torch.tensor([-5.6, -5.6]))
+    g.observe_phase(idx, torch.tensor([0.2, 0.2]), torch.tensor([0, 0]), torch.tensor([0, 0]),
+                    torch.tensor([-30.0, -30.0]), torch.tensor([90.0, 90.0]))  # a weaker peak does not replace it
+    due = None
+    for _ in range(50):  # slot 0's stop head stays at 0.01, slot 1's reached 0.5 at (0, 0) on the first step
+        due = g.observe(idx, torch.tensor([0.01, 0.5 if due is None else 0.01]), torch.tensor([0, 0]), torch.tensor([0, 0]))
+        if bool(due.all()):
+            break
+    assert due.tolist() == [True, True]
+    assert g.by_phase(idx).tolist() == [True, False]
+    assert g.distance(idx, torch.tensor([0, 0]), torch.tensor([0, 0])).tolist() == [5 + 4, 0]
+    # without phase the never-sure slot does not walk
+    g_off = GiveUp(1, stop_by=50, yaw_cells=360, min_prob=0.1)
+    g_off.observe_phase(torch.tensor([0]), torch.tensor([0.4]), torch.tensor([2]), torch.tensor([10]),
+                        torch.tensor([3.4]), torch.tensor([-5.6]))
+    assert not any(bool(g_off.observe(torch.tensor([0]), torch.tensor([0.01]), torch.tensor([0]), torch.tensor([0]))[0])
+                   for _ in range(60))
+
+
+def test_a_walk_blocked_in_pitch_keeps_its_pitch_and_turns():
+    """A phase goal 4 rows above a pitch limit the slot reaches after 2 UP moves: the blocked UP ends the pitch part
+    of the walk, the yaw part follows, then STOP."""
+    g = GiveUp(1, stop_by=100, yaw_cells=360, phase=True)
+    idx = torch.tensor([0])
+    g.observe_phase(idx, torch.tensor([0.3]), torch.tensor([0]), torch.tensor([0]), torch.tensor([4.0]), torch.tensor([3.0]))
+    pitch, yaw, moves, blocked = 0, 0, [], False
+    for _ in range(20):
+        a = int(g.walk(idx, torch.tensor([pitch]), torch.tensor([yaw]), torch.tensor([blocked]))[0])
+        moves.append(a)
+        if a == STOP:
+            break
+        blocked = a == UP and pitch == 2  # the limit
+        pitch += 1 if a == UP and not blocked else 0
+        yaw += 1 if a == RIGHT else 0
+    assert moves == [UP, UP, UP, RIGHT, RIGHT, RIGHT, STOP]
+    assert (pitch, yaw) == (2, 3)
+
+
+class BlindPolicy(torch.nn.Module):
+    """A stop head that never recognises the target (STOP probability 0.001 everywhere) and a preference for RIGHT:
+    with the search memory the agent circles its row."""
+
+    height = width = 64
+    memory_inputs = 0
+    heavy = False
+
+    def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
+        return torch.zeros(num_envs, 1, device=device)
+
+    def forward(self, obs, hidden, masks, memory=None):  # noqa: ANN001, ANN201
+        n = obs["view"].shape[0]
+        probs = torch.tensor([[0.001, 0.001, 0.001, 0.996, 0.001]]).expand(n, 5)
+        return torch.distributions.Categorical(probs=probs), torch.zeros(n), hidden
+
+
+@pytest.mark.parametrize("kind, seed", [("village", 4), ("room", 3)])
+def test_stop_by_phase_finds_a_target_the_stop_head_never_recognises(tmp_path, kind: str, seed: int):
+    """A synthetic panorama, the target 6 degrees above the start row and 100 degrees to the right, an agent whose
+    stop head never passes 0.001: with ``stop_by_phase`` (and the stop refinement) it walks back after its turn to
+    where phase correlation pointed and stops exactly on the target by step T; with ``stop_by`` alone it runs out of
+    steps wherever its search took it."""
+    import cv2
+
+    from findview.dataset import generate_panorama
+    from findview.sim import PanoramaBank, Simulator
+    from findview.task import FindViewEnv, StaticEpisodeSource
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.agents.stop_refine import StopRefiner
+
+    path = tmp_path / f"{kind}.png"
+    cv2.imwrite(str(path), cv2.cvtColor(generate_panorama(seed, kind, 1024), cv2.COLOR_RGB2BGR))
+    T = 500
+    results = {}
+    for phase in (False, True):
+        episode = Episode("e", str(path), 0, 0, 6, 100, difficulty="medium", seed=1)
+        bank = PanoramaBank("cpu", 256, min_slots=1, prefetch_workers=0)
+        env = FindViewEnv(Simulator(bank, fov=90.0, height=64, width=64), StaticEpisodeSource([episode]), 1,
+                          max_steps=T, auto_reset=False)
+        agent = PPOAgent(BlindPolicy(), 1, revisit_penalty=16.0, refiner=StopRefiner(1, 90.0), fov=90.0,
+                         stop_by=T, stop_by_phase=phase)
+        obs = env.reset()
+        agent.reset([0], [episode])
+        info = None
+        for _ in range(T):
+            obs, _, done, infos = env.step(agent.act(obs))
+            if bool(done[0]):
+                info = infos[0]
+                break
+        results[phase] = info
+    assert results[True]["called_stop"] and results[True]["eps"] == 0
+    assert results[True]["steps"] <= T
+    assert not results[False]["called_stop"] and results[False]["eps"] > 20

@@ -91,3 +91,26 @@ def test_stops_near_the_target_end_on_it(panos) -> None:
     assert bool(done.all())
     assert final == [(0, 30)] * len(episodes)
     assert refiner.moves.tolist() == [abs(dp) + abs(dy) for dp, dy in offsets]
+
+
+def test_block_spectra_measure_as_the_block_averaged_images(panos) -> None:
+    """``phase_spectrum(images, 2)`` (grey and 2x2 block mean in one pass, as ``stop_by_phase`` measures 256-pixel
+    views at 128) gives the rotation that :func:`residual_rotation` measures on the 2x2 block means of the images
+    themselves (float, not rounded), and refuses a size that is not a multiple of the block."""
+    from findview_baselines.agents.stop_refine import phase_spectrum, rotation_between
+
+    bank = PanoramaBank("cpu", 512, min_slots=1, prefetch_workers=0)
+    sim = Simulator(bank, fov=FOV, height=128, width=128)
+    slot = bank.acquire(panos[1])
+    poses = [(0, 37), (3, 40), (-4, 45), (8, 30)]
+    n = len(poses)
+    views = sim.render(torch.full((n,), slot), torch.tensor([p for p, _ in poses]), torch.tensor([y for _, y in poses]))
+    target = sim.render(torch.full((n,), slot), torch.full((n,), 2), torch.full((n,), 40))
+    got = rotation_between(phase_spectrum(views, 2), phase_spectrum(target, 2), FOV, 64)
+    pool = lambda x: torch.nn.functional.avg_pool2d(x.float(), 2)  # noqa: E731
+    want = residual_rotation(pool(views), pool(target), FOV)
+    for g, w in zip(got, want):
+        assert torch.allclose(g, w, atol=1e-3), (g, w)
+    assert got[2].min().item() > 0.2  # all within a few degrees: clear peaks
+    with pytest.raises(ValueError, match="blocks of 3"):
+        phase_spectrum(views, 3)

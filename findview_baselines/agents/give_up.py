@@ -13,6 +13,14 @@ little sure has no view worth returning to (on the robust agent's corrupted val 
 of 0.16-0.42, and one of 0.08, led to within 2 degrees of the target; 0.053 and less to views 39-192 degrees
 away).
 
+With ``phase=True`` a slot whose STOP probability never reached ``min_prob`` still has somewhere to go: every step it
+also measures the view against the target by phase correlation (:func:`~findview_baselines.agents.stop_refine.residual_rotation`,
+fed by the agent through :meth:`GiveUp.observe_phase`) and keeps the pose the clearest correlation peak pointed at
+(the pose where it was measured plus the rotation measured there). A target under heavy fog that the stop head
+never recognises is often still found this way: on the FoV-90 robust file's outdoor fog val episodes that never
+stopped, that pose was the target or within 8 degrees of it in all 8, against 18-232 degrees where they ran out
+of steps.
+
 It changes nothing but the end of episodes that would otherwise run out of steps: until its last walk home the
 agent acts as without it.
 
@@ -40,10 +48,12 @@ class GiveUp:
         margin: steps kept free after the walk's STOP (the stop refinement's moves, plus one).
         min_prob: the least best STOP probability worth walking back to (``[0, 1]``).
         max_walk: most moves of the walk back before the slot stops where it is.
+        phase: a slot whose best STOP probability stays below ``min_prob`` walks to the pose its clearest phase
+            correlation pointed at (:meth:`observe_phase`) instead of running out of steps.
     """
 
     def __init__(self, num_envs: int, stop_by: int, yaw_cells: int, device: str | torch.device = "cpu",
-                 margin: int = 1, min_prob: float = 0.1, max_walk: int = 400) -> None:
+                 margin: int = 1, min_prob: float = 0.1, max_walk: int = 400, phase: bool = False) -> None:
         if int(stop_by) < 1:
             raise ValueError(f"stop_by must be >= 1 steps, got {stop_by}")
         if int(max_walk) < 1 or int(margin) < 0:
@@ -51,6 +61,7 @@ class GiveUp:
         if not 0.0 <= float(min_prob) <= 1.0:
             raise ValueError(f"min_prob must be a probability in [0, 1], got {min_prob}")
         self.min_prob = float(min_prob)
+        self.phase = bool(phase)
         self.stop_by, self.yaw_cells, self.max_walk, self.margin = int(stop_by), int(yaw_cells), int(max_walk), int(margin)
         self.device = torch.device(device)
         n = int(num_envs)
@@ -60,6 +71,9 @@ class GiveUp:
         self.best_yaw = torch.zeros(n, dtype=torch.long, device=self.device)
         self.returning = torch.zeros(n, dtype=torch.bool, device=self.device)
         self.walked = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.phase_peak = torch.full((n,), -1.0, device=self.device)  # clearest phase-correlation peak seen (phase)
+        self.phase_pitch = torch.zeros(n, dtype=torch.long, device=self.device)  # the pose it pointed at, steps
+        self.phase_yaw = torch.zeros(n, dtype=torch.long, device=self.device)
 
     def reset(self, env_ids: torch.Tensor) -> None:
         """Slots ``env_ids`` (long tensor) start a new episode."""
@@ -70,6 +84,30 @@ class GiveUp:
         self.best_yaw[ids] = 0
         self.returning[ids] = False
         self.walked[ids] = 0
+        self.phase_peak[ids] = -1.0
+        self.phase_pitch[ids] = 0
+        self.phase_yaw[ids] = 0
+
+    def observe_phase(self, idx: torch.Tensor, peak: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor,
+                      dpitch: torch.Tensor, dyaw: torch.Tensor) -> None:
+        """Slots ``idx`` ``(K,)`` at poses ``(pitch, yaw)`` (``(K,)`` offsets, steps) measured the target at
+        ``(dpitch, dyaw)`` (``(K,)`` float, steps; positive: up / right) with correlation peak ``peak`` ``(K,)``;
+        keep the pose the clearest peak so far points at (rounded to the step grid)."""
+        idx = idx.to(self.device)
+        p = peak.to(self.device, torch.float32)
+        better = p > self.phase_peak[idx]
+        goal_pitch = pitch.to(self.device) + torch.round(dpitch.to(self.device)).long()
+        goal_yaw = (yaw.to(self.device) + torch.round(dyaw.to(self.device)).long()) % self.yaw_cells
+        self.phase_peak[idx] = torch.where(better, p, self.phase_peak[idx])
+        self.phase_pitch[idx] = torch.where(better, goal_pitch, self.phase_pitch[idx])
+        self.phase_yaw[idx] = torch.where(better, goal_yaw, self.phase_yaw[idx])
+
+    def by_phase(self, idx: torch.Tensor) -> torch.Tensor:
+        """``(K,)`` bool: slots ``idx`` whose walk goes to the phase-correlation pose (``phase`` on, STOP probability
+        never at ``min_prob``, a peak measured)."""
+        if not self.phase:
+            return torch.zeros(len(idx), dtype=torch.bool, device=self.device)
+        return (self.best[idx] < self.min_prob) & (self.phase_peak[idx] >= 0)
 
     def observe(self, idx: torch.Tensor, stop_prob: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
         """Slots ``idx`` ``(K,)`` asked the policy at poses ``(pitch, yaw)`` (``(K,)`` offsets, steps) and got
@@ -85,12 +123,14 @@ class GiveUp:
         self.steps[idx] += 1
         # this act is step `steps`; walking d moves from here, the walk's STOP is step steps + d
         due = self.steps[idx] + self.distance(idx, pitch, yaw) + self.margin >= self.stop_by
-        return due & (self.best[idx] >= self.min_prob)
+        return due & ((self.best[idx] >= self.min_prob) | self.by_phase(idx))
 
     def _delta(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Pitch and yaw steps ``(K,)`` from ``(pitch, yaw)`` to the best pose (yaw the short way round)."""
-        dp = self.best_pitch[idx] - pitch.to(self.device)
-        dy = (self.best_yaw[idx] - yaw.to(self.device)) % self.yaw_cells
+        """Pitch and yaw steps ``(K,)`` from ``(pitch, yaw)`` to the goal (the best pose, or the phase-correlation
+        pose, :meth:`by_phase`), yaw the short way round."""
+        phase = self.by_phase(idx)
+        dp = torch.where(phase, self.phase_pitch[idx], self.best_pitch[idx]) - pitch.to(self.device)
+        dy = (torch.where(phase, self.phase_yaw[idx], self.best_yaw[idx]) - yaw.to(self.device)) % self.yaw_cells
         return dp, torch.where(dy > self.yaw_cells // 2, dy - self.yaw_cells, dy)
 
     def distance(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
@@ -98,11 +138,19 @@ class GiveUp:
         dp, dy = self._delta(idx.to(self.device), pitch, yaw)
         return dp.abs() + dy.abs()
 
-    def walk(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    def walk(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor,
+             blocked: torch.Tensor | None = None) -> torch.Tensor:
         """The next move ``(K,)`` of slots ``idx`` on their walk back from poses ``(pitch, yaw)`` (``(K,)``
-        offsets, steps): UP / DOWN until the best pose's pitch, then LEFT / RIGHT the short way round, STOP there
-        (or after ``max_walk`` moves); a slot that answers STOP leaves the walk."""
+        offsets, steps): UP / DOWN until the goal's pitch, then LEFT / RIGHT the short way round, STOP there
+        (or after ``max_walk`` moves); a slot that answers STOP leaves the walk. ``blocked`` ``(K,)`` bool: the
+        slot's last move did not change its view (the pitch limit: a phase-correlation goal can lie beyond it);
+        its walk keeps the pitch it has and goes on with the yaw."""
         idx = idx.to(self.device)
+        if blocked is not None:
+            stuck = blocked.to(self.device) & (self.walked[idx] > 0)
+            here = pitch.to(self.device)
+            self.best_pitch[idx] = torch.where(stuck, here, self.best_pitch[idx])
+            self.phase_pitch[idx] = torch.where(stuck, here, self.phase_pitch[idx])
         dp, dy = self._delta(idx, pitch, yaw)
         full = lambda a: torch.full_like(dp, a)  # noqa: E731
         move = torch.where(dp > 0, full(UP), torch.where(dp < 0, full(DOWN),

@@ -27,6 +27,9 @@
 - ``stop_by > 0`` (needs the search memory; set it to ``T``): a slot that has not stopped when the steps left are
   just enough walks back to the dead-reckoned pose where the policy's STOP probability was highest and stops
   there (:mod:`findview_baselines.agents.give_up`), instead of running out of steps wherever it is.
+  ``stop_by_phase`` (with ``stop_by``): a slot whose STOP probability never reached the walk's threshold walks
+  instead to where phase correlation of view and target pointed most clearly (measured each step on the views as
+  rendered, averaged to at most 128 pixels wide).
 - :meth:`PPOAgent.step_stop_prob` gives the policy's STOP probability of the last ``act`` (for ``tools/eval.py
   trace=true``); it is computed only when asked.
 
@@ -50,7 +53,7 @@ from findview.episode import Episode
 from findview.runtime import scoped
 from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.give_up import GiveUp
-from findview_baselines.agents.stop_refine import StopRefiner
+from findview_baselines.agents.stop_refine import StopRefiner, phase_spectrum, rotation_between
 from findview_baselines.rl.observations import area_downsample, downsample_factor
 from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
 
@@ -96,6 +99,8 @@ class PPOAgent(Agent):
         stop_by: the step by which a slot stops (``T``): when the steps left are just enough, a slot that has not
             stopped walks back to its most stop-like pose and stops (0: off; needs ``revisit_penalty > 0``, the
             memory's dead reckoning).
+        stop_by_phase: with ``stop_by``, a slot whose STOP probability never reached 0.1 walks to the pose the
+            clearest phase correlation of view and target pointed at (:class:`GiveUp`, ``phase``); needs ``fov``.
     """
 
     name = "ppo"
@@ -114,6 +119,7 @@ class PPOAgent(Agent):
         fov: float | None = None,
         stop_by: int = 0,
         stop_min_prob: float | None = None,
+        stop_by_phase: bool = False,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -151,7 +157,14 @@ class PPOAgent(Agent):
                     f"(revisit_penalty > 0, got {revisit_penalty})"
                 )
             margin = 1 + (refiner.max_moves if refiner is not None else 0)  # the refinement's moves after the walk
-            self.give_up = GiveUp(self.num_envs, int(stop_by), self.revisits.yaw_cells, self.device, margin=margin)
+            self.give_up = GiveUp(self.num_envs, int(stop_by), self.revisits.yaw_cells, self.device, margin=margin,
+                                  phase=bool(stop_by_phase))
+        if stop_by_phase and (self.give_up is None or fov is None):
+            raise ValueError(f"stop_by_phase walks to a pose measured in degrees: it needs stop_by > 0 (got {stop_by}) "
+                             f"and the views' fov (got {fov})")
+        self.fov = None if fov is None else float(fov)
+        self._target_spectra: torch.Tensor | None = None  # stop_by_phase: each slot's target spectrum, once per episode
+        self._spectrum_fresh = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         # the last act's network outputs: (slots the policy decided for, their action distribution), or None
         self._last_policy: tuple[torch.Tensor, "Categorical"] | None = None
 
@@ -173,6 +186,7 @@ class PPOAgent(Agent):
         fov: float | None = None,
         stop_by: int = 0,
         stop_min_prob: float | None = None,
+        stop_by_phase: bool = False,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -220,7 +234,7 @@ class PPOAgent(Agent):
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov,
-            stop_by, stop_min_prob,
+            stop_by, stop_min_prob, stop_by_phase,
         )
 
     @classmethod
@@ -246,6 +260,7 @@ class PPOAgent(Agent):
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
             refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
+            stop_by_phase=cfg.stop_by_phase,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -261,6 +276,7 @@ class PPOAgent(Agent):
             self.refiner.reset(ids)
         if self.give_up is not None:
             self.give_up.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
+            self._spectrum_fresh[torch.tensor(ids, dtype=torch.long, device=self.device)] = False
         for i, ep in zip(ids, episodes):
             self.done[i] = ep is None
             self._rngs[i] = episode_rng(self.seed, ep, self._fallback)
@@ -285,14 +301,14 @@ class PPOAgent(Agent):
         asked = work[~refining & ~walking]  # the slots the policy decides for (refining and walking slots no longer ask it)
         stops = np.zeros(0, dtype=np.int64)
         if len(asked):
-            a_t = self._policy_actions(asked, view, target)
+            a_t = self._policy_actions(asked, view, target, (full_view, full_target))
             actions[torch.as_tensor(asked, device=self.device)] = a_t
             stops = asked[(a_t == STOP).cpu().numpy()]
         if walking.any():  # walking back to the best pose (stop_by): the memory keeps the pose, no network
             walkers = work[walking]
             idx = torch.as_tensor(walkers, device=self.device)
             self.revisits.arrive(idx, view.to(self.device)[idx])
-            a_w = self.give_up.walk(idx, self.revisits.pitch[idx], self.revisits.yaw[idx])
+            a_w = self.give_up.walk(idx, self.revisits.pitch[idx], self.revisits.yaw[idx], self.revisits.last_blocked[idx])
             self.revisits.moved(idx, a_w)
             actions[idx] = a_w
             stops = np.concatenate([stops, walkers[(a_w == STOP).cpu().numpy()]])
@@ -323,8 +339,10 @@ class PPOAgent(Agent):
             out[idx] = dist.probs[:, STOP].float()
         return out
 
-    def _policy_actions(self, work: np.ndarray, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """The policy's actions (len(work),) for the slots ``work``; their GRU states move on."""
+    def _policy_actions(self, work: np.ndarray, view: torch.Tensor, target: torch.Tensor,
+                        rendered: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        """The policy's actions (len(work),) for the slots ``work``; their GRU states move on. ``view`` / ``target``:
+        the network's size; ``rendered``: the views and targets as rendered (for ``stop_by_phase``)."""
         full = len(work) == self.num_envs
         idx = torch.as_tensor(work, device=self.device)
         v = view.to(self.device) if full else view.to(self.device)[idx]
@@ -362,6 +380,8 @@ class PPOAgent(Agent):
             a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
         if self.give_up is not None:  # remember the most stop-like pose; walk back to it when the steps left are just enough
             pitch, yaw = self.revisits.pitch[idx], self.revisits.yaw[idx]
+            if self.give_up.phase:
+                self._observe_phase(idx, pitch, yaw, *rendered)
             late = self.give_up.observe(idx, dist.probs[:, STOP], pitch, yaw) & (a_t != STOP)
             if bool(late.any()):
                 a_t = a_t.clone()
@@ -369,6 +389,32 @@ class PPOAgent(Agent):
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t
+
+
+    def _observe_phase(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor, view: torch.Tensor,
+                       target: torch.Tensor) -> None:
+        """Phase correlation of the rendered ``view`` / ``target`` ``(N, 3, H, W)`` for the slots of ``idx`` whose STOP
+        probability has not yet reached the walk's threshold (the others never walk by it), on the grey images
+        averaged to at most 128 pixels wide (as good as full size on the fog val episodes, and cheaper), fed to the
+        give-up. A slot's target spectrum is taken once per episode."""
+        mask = self.give_up.best[idx] < self.give_up.min_prob
+        need = idx[mask]
+        if len(need) == 0:
+            return
+        h, w = view.shape[-2:]
+        k = max(1, w // 128)
+        k = k if h % k == 0 and w % k == 0 else 1
+        if self._target_spectra is None or self._target_spectra.shape[1:] != (h // k, w // k // 2 + 1):
+            self._target_spectra = torch.zeros((self.num_envs, h // k, w // k // 2 + 1), dtype=torch.complex64, device=self.device)
+            self._spectrum_fresh.zero_()
+        new = need[~self._spectrum_fresh[need]]
+        if len(new):
+            self._target_spectra[new] = phase_spectrum(target.to(self.device)[new], k)
+            self._spectrum_fresh[new] = True
+        dyaw, dpitch, peak = rotation_between(phase_spectrum(view.to(self.device)[need], k), self._target_spectra[need],
+                                              float(self.fov), w // k)
+        step = 360.0 / self.revisits.yaw_cells  # degrees per move
+        self.give_up.observe_phase(need, peak, pitch[mask], yaw[mask], dpitch / step, dyaw / step)
 
 
 def _register() -> None:

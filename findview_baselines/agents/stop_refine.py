@@ -23,7 +23,7 @@ import torch
 
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
 
-__all__ = ["residual_rotation", "StopRefiner"]
+__all__ = ["residual_rotation", "phase_spectrum", "rotation_between", "StopRefiner"]
 
 _GRAY = (0.299, 0.587, 0.114)
 
@@ -45,6 +45,49 @@ def _subpixel(left: torch.Tensor, mid: torch.Tensor, right: torch.Tensor) -> tor
     return offset.clamp(-0.5, 0.5)
 
 
+def phase_spectrum(images: torch.Tensor, block: int = 1) -> torch.Tensor:
+    """The spectrum phase correlation compares: ``(N, h, w // 2 + 1)`` complex, the real FFT of the grey image
+    ``(N, 3, H, W)`` (uint8 or float), averaged over ``block x block`` pixel blocks (``h = H / block``, ``w = W /
+    block``; H and W multiples of it), its mean removed, under a Hann window."""
+    if images.shape[-2] % block or images.shape[-1] % block:
+        raise ValueError(f"phase_spectrum: {tuple(images.shape[-2:])} pixels are not blocks of {block}")
+    if block > 1:  # grey and block mean in one pass over the pixels, channels last (the environment's layout)
+        n, _, hh, ww = images.shape
+        x = images.permute(0, 2, 3, 1).float().reshape(n, hh // block, block, ww // block, block * 3).sum(dim=2)
+        g = x @ (torch.tensor(_GRAY, device=images.device).repeat(block) / (block * block))
+    else:
+        g = _gray(images)
+    h, w = g.shape[-2:]
+    window = torch.hann_window(h, periodic=False, device=g.device)[:, None] * torch.hann_window(w, periodic=False, device=g.device)[None, :]
+    g = g - g.mean(dim=(1, 2), keepdim=True)
+    return torch.fft.rfft2(g * window)
+
+
+def rotation_between(
+    view_spectrum: torch.Tensor, target_spectrum: torch.Tensor, fov: float, width: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`residual_rotation` from the two images' :func:`phase_spectrum` (``(N, h, w // 2 + 1)``; ``width``:
+    ``w``, the pixels the spectra were taken over)."""
+    n, h, w = view_spectrum.shape[0], view_spectrum.shape[1], int(width)
+    cross = view_spectrum * target_spectrum.conj()
+    cross = cross / cross.abs().clamp_min(1e-9)
+    corr = torch.fft.irfft2(cross, s=(h, w))  # peak at d where view(x) ~ target(x - d)
+    flat = corr.reshape(n, -1)
+    peak, where = flat.max(dim=1)
+    py, px = where // w, where % w
+    rows = torch.arange(n, device=corr.device)
+    dy = _subpixel(corr[rows, (py - 1) % h, px], peak, corr[rows, (py + 1) % h, px])
+    dx = _subpixel(corr[rows, py, (px - 1) % w], peak, corr[rows, py, (px + 1) % w])
+    shift_y = torch.where(py > h // 2, py - h, py).float() + dy
+    shift_x = torch.where(px > w // 2, px - w, px).float() + dx
+    focal = (w / 2.0) / math.tan(math.radians(fov) / 2.0)
+    # content displaced to the right in the view (shift_x > 0) is where the target is: turn right;
+    # displaced upwards (shift_y < 0, image rows grow downwards): look up
+    dyaw = torch.rad2deg(torch.atan(shift_x / focal))
+    dpitch = torch.rad2deg(torch.atan(-shift_y / focal))
+    return dyaw, dpitch, peak
+
+
 def residual_rotation(
     view: torch.Tensor, target: torch.Tensor, fov: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -60,33 +103,7 @@ def residual_rotation(
         ``peak`` (N,) the correlation peak in [0, 1] (about 1 for a pure shift of the same content, a few
         hundredths for unrelated images).
     """
-    n, _, h, w = view.shape
-    hann_y = torch.hann_window(h, periodic=False, device=view.device)
-    hann_x = torch.hann_window(w, periodic=False, device=view.device)
-    window = hann_y[:, None] * hann_x[None, :]
-
-    def spectrum(images: torch.Tensor) -> torch.Tensor:
-        g = _gray(images)
-        g = g - g.mean(dim=(1, 2), keepdim=True)
-        return torch.fft.rfft2(g * window)
-
-    cross = spectrum(view) * spectrum(target).conj()
-    cross = cross / cross.abs().clamp_min(1e-9)
-    corr = torch.fft.irfft2(cross, s=(h, w))  # peak at d where view(x) ~ target(x - d)
-    flat = corr.reshape(n, -1)
-    peak, where = flat.max(dim=1)
-    py, px = where // w, where % w
-    rows = torch.arange(n, device=view.device)
-    dy = _subpixel(corr[rows, (py - 1) % h, px], peak, corr[rows, (py + 1) % h, px])
-    dx = _subpixel(corr[rows, py, (px - 1) % w], peak, corr[rows, py, (px + 1) % w])
-    shift_y = torch.where(py > h // 2, py - h, py).float() + dy
-    shift_x = torch.where(px > w // 2, px - w, px).float() + dx
-    focal = (w / 2.0) / math.tan(math.radians(fov) / 2.0)
-    # content displaced to the right in the view (shift_x > 0) is where the target is: turn right;
-    # displaced upwards (shift_y < 0, image rows grow downwards): look up
-    dyaw = torch.rad2deg(torch.atan(shift_x / focal))
-    dpitch = torch.rad2deg(torch.atan(-shift_y / focal))
-    return dyaw, dpitch, peak
+    return rotation_between(phase_spectrum(view), phase_spectrum(target), fov, view.shape[-1])
 
 
 class StopRefiner:
