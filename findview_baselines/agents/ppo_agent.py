@@ -390,7 +390,6 @@ class PPOAgent(Agent):
             self.revisits.moved(idx, a_t)
         return a_t
 
-
     def _observe_phase(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor, view: torch.Tensor,
                        target: torch.Tensor) -> None:
         """Phase correlation of the rendered ``view`` / ``target`` ``(N, 3, H, W)`` for the slots of ``idx`` whose STOP
@@ -411,8 +410,9 @@ class PPOAgent(Agent):
         if len(new):
             self._target_spectra[new] = phase_spectrum(target.to(self.device)[new], k)
             self._spectrum_fresh[new] = True
-        dyaw, dpitch, peak = rotation_between(phase_spectrum(view.to(self.device)[need], k), self._target_spectra[need],
-                                              float(self.fov), w // k)
+        view = view.to(self.device)
+        view = view if len(need) == view.shape[0] else view[need]  # need is sorted: all slots = all in order (no copy)
+        dyaw, dpitch, peak = rotation_between(phase_spectrum(view, k), self._target_spectra[need], float(self.fov), w // k)
         step = 360.0 / self.revisits.yaw_cells  # degrees per move
         self.give_up.observe_phase(need, peak, pitch[mask], yaw[mask], dpitch / step, dyaw / step)
 
