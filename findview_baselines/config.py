@@ -285,8 +285,9 @@ class PPOAgentConfig:
     stop_by_phase: bool = False
     """With ``stop_by``: a slot whose STOP probability never reached 0.1 (a target the stop head does not recognise,
     e.g. under heavy fog) walks instead to the pose that phase correlation of view and target pointed at most clearly
-    over its search (measured every step on the views averaged to at most 128 pixels wide; the pose where it was
-    measured plus the rotation measured there) and stops there. Episodes that stop by themselves, or whose STOP
+    over its search (measured every step on the grey views averaged over k x k blocks, k = width // 128 where it
+    divides the size, 256 -> 128 pixels; the pose where it was measured plus the rotation measured there) and stops
+    there. Episodes that stop by themselves, or whose STOP
     probability reached 0.1, are unchanged. false = off."""
     fov: float = 90.0
     """Horizontal field of view of the views, degrees (the refinement's pixels-to-degrees; configs/agent/ppo.yaml

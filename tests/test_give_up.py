@@ -169,6 +169,28 @@ def test_a_walk_blocked_in_pitch_keeps_its_pitch_and_turns():
         yaw += 1 if a == RIGHT else 0
     assert moves == [UP, UP, UP, RIGHT, RIGHT, RIGHT, STOP]
     assert (pitch, yaw) == (2, 3)
+    # without phase a blocked move changes nothing: the walk back to a visited pose keeps asking for its pitch
+    g_off = GiveUp(1, stop_by=100, yaw_cells=360)
+    g_off.observe(idx, torch.tensor([0.5]), torch.tensor([4]), torch.tensor([3]))  # best pose (4, 3)
+    first = int(g_off.walk(idx, torch.tensor([0]), torch.tensor([0]), torch.tensor([False]))[0])
+    again = [int(g_off.walk(idx, torch.tensor([1]), torch.tensor([0]), torch.tensor([True]))[0]) for _ in range(3)]
+    assert [first] + again == [UP] * 4
+
+
+def test_each_episode_measures_against_its_own_target():
+    """The target spectrum is taken once per episode: a slot that starts a new episode measures against the new
+    target, not the one of its previous episode."""
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.agents.stop_refine import phase_spectrum
+
+    agent = PPOAgent(BlindPolicy(), 1, revisit_penalty=16.0, fov=90.0, stop_by=1000, stop_by_phase=True)
+    gen = torch.Generator().manual_seed(0)
+    frames = [torch.randint(0, 256, (1, 3, 64, 64), dtype=torch.uint8, generator=gen) for _ in range(3)]
+    for k, target in enumerate(frames[1:]):
+        agent.reset([0], [Episode(f"e{k}", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=k)])
+        assert not bool(agent._spectrum_fresh[0])
+        agent.act({"view": frames[0], "target": target})
+        assert torch.equal(agent._target_spectra[0], phase_spectrum(target, 1)[0])
 
 
 class BlindPolicy(torch.nn.Module):

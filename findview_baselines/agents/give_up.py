@@ -112,8 +112,9 @@ class GiveUp:
     def observe(self, idx: torch.Tensor, stop_prob: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
         """Slots ``idx`` ``(K,)`` asked the policy at poses ``(pitch, yaw)`` (``(K,)`` offsets, steps) and got
         ``stop_prob`` ``(K,)``; count the step, keep the best pose. Returns ``(K,)`` bool: the slots that give up
-        now (their best STOP probability is at least ``min_prob`` and the walk back and its STOP need the steps left
-        before ``stop_by``; the caller starts their walk with :meth:`walk`)."""
+        now (their best STOP probability is at least ``min_prob``, or with ``phase`` a phase-correlation goal stands in
+        for it (:meth:`by_phase`), and the walk to the goal and its STOP need the steps left before ``stop_by``; the
+        caller starts their walk with :meth:`walk`)."""
         idx = idx.to(self.device)
         p = stop_prob.to(self.device, torch.float32)
         better = p > self.best[idx]
@@ -134,7 +135,7 @@ class GiveUp:
         return dp, torch.where(dy > self.yaw_cells // 2, dy - self.yaw_cells, dy)
 
     def distance(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
-        """Moves ``(K,)`` of the walk from ``(pitch, yaw)`` back to the best pose of slots ``idx``."""
+        """Moves ``(K,)`` of the walk from ``(pitch, yaw)`` to the goal of slots ``idx`` (:meth:`_delta`)."""
         dp, dy = self._delta(idx.to(self.device), pitch, yaw)
         return dp.abs() + dy.abs()
 
@@ -144,9 +145,10 @@ class GiveUp:
         offsets, steps): UP / DOWN until the goal's pitch, then LEFT / RIGHT the short way round, STOP there
         (or after ``max_walk`` moves); a slot that answers STOP leaves the walk. ``blocked`` ``(K,)`` bool: the
         slot's last move did not change its view (the pitch limit: a phase-correlation goal can lie beyond it);
-        its walk keeps the pitch it has and goes on with the yaw."""
+        with ``phase`` on, its walk keeps the pitch it has and goes on with the yaw (without ``phase`` it is ignored:
+        the walk goes back to a visited pose, exactly as before the option existed)."""
         idx = idx.to(self.device)
-        if blocked is not None:
+        if blocked is not None and self.phase:
             stuck = blocked.to(self.device) & (self.walked[idx] > 0)
             here = pitch.to(self.device)
             self.best_pitch[idx] = torch.where(stuck, here, self.best_pitch[idx])

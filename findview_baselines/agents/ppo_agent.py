@@ -28,8 +28,8 @@
   just enough walks back to the dead-reckoned pose where the policy's STOP probability was highest and stops
   there (:mod:`findview_baselines.agents.give_up`), instead of running out of steps wherever it is.
   ``stop_by_phase`` (with ``stop_by``): a slot whose STOP probability never reached the walk's threshold walks
-  instead to where phase correlation of view and target pointed most clearly (measured each step on the views as
-  rendered, averaged to at most 128 pixels wide).
+  instead to where phase correlation of view and target pointed most clearly (measured each step on the grey views
+  as rendered, averaged over ``k x k`` blocks, ``k = width // 128`` where it divides the size: 256 -> 128 pixels).
 - :meth:`PPOAgent.step_stop_prob` gives the policy's STOP probability of the last ``act`` (for ``tools/eval.py
   trace=true``); it is computed only when asked.
 
@@ -394,8 +394,9 @@ class PPOAgent(Agent):
                        target: torch.Tensor) -> None:
         """Phase correlation of the rendered ``view`` / ``target`` ``(N, 3, H, W)`` for the slots of ``idx`` whose STOP
         probability has not yet reached the walk's threshold (the others never walk by it), on the grey images
-        averaged to at most 128 pixels wide (as good as full size on the fog val episodes, and cheaper), fed to the
-        give-up. A slot's target spectrum is taken once per episode."""
+        averaged over ``k x k`` blocks, ``k = W // 128`` where it divides ``H`` and ``W`` (else 1; 256 -> 128 pixels: as
+        good as full size on the fog val episodes, and cheaper), fed to the give-up in moves (the search memory's
+        grid: degrees per move = 360 / its yaw cells). A slot's target spectrum is taken once per episode."""
         mask = self.give_up.best[idx] < self.give_up.min_prob
         need = idx[mask]
         if len(need) == 0:

@@ -67,7 +67,8 @@ def rotation_between(
     view_spectrum: torch.Tensor, target_spectrum: torch.Tensor, fov: float, width: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`residual_rotation` from the two images' :func:`phase_spectrum` (``(N, h, w // 2 + 1)``; ``width``:
-    ``w``, the pixels the spectra were taken over)."""
+    ``w``, the pixels the spectra were taken over; ``fov``: the views' horizontal field of view, degrees). Returns
+    ``dyaw``, ``dpitch`` ``(N,)`` degrees and ``peak`` ``(N,)``, as :func:`residual_rotation`."""
     n, h, w = view_spectrum.shape[0], view_spectrum.shape[1], int(width)
     cross = view_spectrum * target_spectrum.conj()
     cross = cross / cross.abs().clamp_min(1e-9)
