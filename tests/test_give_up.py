@@ -188,9 +188,9 @@ def test_each_episode_measures_against_its_own_target():
     frames = [torch.randint(0, 256, (1, 3, 64, 64), dtype=torch.uint8, generator=gen) for _ in range(3)]
     for k, target in enumerate(frames[1:]):
         agent.reset([0], [Episode(f"e{k}", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=k)])
-        assert not bool(agent._spectrum_fresh[0])
+        assert not bool(agent.give_up.spectrum_fresh[0])
         agent.act({"view": frames[0], "target": target})
-        assert torch.equal(agent._target_spectra[0], phase_spectrum(target, 1)[0])
+        assert torch.equal(agent.give_up.target_spectra[0], phase_spectrum(target, 1)[0])
 
 
 class BlindPolicy(torch.nn.Module):

@@ -14,8 +14,9 @@ of 0.16-0.42, and one of 0.08, led to within 2 degrees of the target; 0.053 and 
 away).
 
 With ``phase=True`` a slot whose STOP probability never reached ``min_prob`` still has somewhere to go: every step it
-also measures the view against the target by phase correlation (:func:`~findview_baselines.agents.stop_refine.residual_rotation`,
-fed by the agent through :meth:`GiveUp.observe_phase`) and keeps the pose the clearest correlation peak pointed at
+also measures the view against the target by phase correlation (:meth:`GiveUp.measure`, with
+:func:`~findview_baselines.agents.stop_refine.phase_spectrum`; the agent passes the views as rendered) and keeps the
+pose the clearest correlation peak pointed at
 (the pose where it was measured plus the rotation measured there). A target under heavy fog that the stop head
 never recognises is often still found this way: on the FoV-90 robust file's outdoor fog val episodes that never
 stopped, that pose was the target or within 8 degrees of it in all 8, against 18-232 degrees where they ran out
@@ -33,6 +34,7 @@ from __future__ import annotations
 import torch
 
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
+from findview_baselines.agents.stop_refine import phase_spectrum, rotation_between
 
 __all__ = ["GiveUp"]
 
@@ -49,11 +51,13 @@ class GiveUp:
         min_prob: the least best STOP probability worth walking back to (``[0, 1]``).
         max_walk: most moves of the walk back before the slot stops where it is.
         phase: a slot whose best STOP probability stays below ``min_prob`` walks to the pose its clearest phase
-            correlation pointed at (:meth:`observe_phase`) instead of running out of steps.
+            correlation pointed at (:meth:`measure`, :meth:`observe_phase`) instead of running out of steps.
+        fov: the views' horizontal field of view, degrees (needed by :meth:`measure`).
     """
 
     def __init__(self, num_envs: int, stop_by: int, yaw_cells: int, device: str | torch.device = "cpu",
-                 margin: int = 1, min_prob: float = 0.1, max_walk: int = 400, phase: bool = False) -> None:
+                 margin: int = 1, min_prob: float = 0.1, max_walk: int = 400, phase: bool = False,
+                 fov: float | None = None) -> None:
         if int(stop_by) < 1:
             raise ValueError(f"stop_by must be >= 1 steps, got {stop_by}")
         if int(max_walk) < 1 or int(margin) < 0:
@@ -62,6 +66,7 @@ class GiveUp:
             raise ValueError(f"min_prob must be a probability in [0, 1], got {min_prob}")
         self.min_prob = float(min_prob)
         self.phase = bool(phase)
+        self.fov = None if fov is None else float(fov)
         self.stop_by, self.yaw_cells, self.max_walk, self.margin = int(stop_by), int(yaw_cells), int(max_walk), int(margin)
         self.device = torch.device(device)
         n = int(num_envs)
@@ -74,6 +79,8 @@ class GiveUp:
         self.phase_peak = torch.full((n,), -1.0, device=self.device)  # clearest phase-correlation peak seen (phase)
         self.phase_pitch = torch.zeros(n, dtype=torch.long, device=self.device)  # the pose it pointed at, steps
         self.phase_yaw = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.target_spectra: torch.Tensor | None = None  # (N, h, w // 2 + 1) complex, taken once per episode (measure)
+        self.spectrum_fresh = torch.zeros(n, dtype=torch.bool, device=self.device)
 
     def reset(self, env_ids: torch.Tensor) -> None:
         """Slots ``env_ids`` (long tensor) start a new episode."""
@@ -87,6 +94,38 @@ class GiveUp:
         self.phase_peak[ids] = -1.0
         self.phase_pitch[ids] = 0
         self.phase_yaw[ids] = 0
+        self.spectrum_fresh[ids] = False
+
+    def measure(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor, view: torch.Tensor,
+                target: torch.Tensor) -> None:
+        """Phase correlation of the rendered ``view`` / ``target`` ``(N, 3, H, W)`` (every slot's) for the slots of
+        ``idx`` ``(K,)``, sorted, at poses ``(pitch, yaw)`` ``(K,)`` whose STOP probability has not yet reached
+        ``min_prob`` (the others never walk by it), fed to :meth:`observe_phase` in moves (degrees per move = 360 /
+        ``yaw_cells``). Measured on the grey images averaged over ``k x k`` blocks, ``k = W // 128`` where it divides
+        ``H`` and ``W`` (else 1; 256 -> 128 pixels: as good as full size on the fog val episodes, and cheaper); a
+        slot's target spectrum is taken once per episode."""
+        if self.fov is None:
+            raise ValueError("GiveUp.measure needs the views' fov (GiveUp(..., fov=...))")
+        idx = idx.to(self.device)
+        mask = self.best[idx] < self.min_prob
+        need = idx[mask]
+        if len(need) == 0:
+            return
+        h, w = view.shape[-2:]
+        k = max(1, w // 128)
+        k = k if h % k == 0 and w % k == 0 else 1
+        if self.target_spectra is None or self.target_spectra.shape[1:] != (h // k, w // k // 2 + 1):
+            self.target_spectra = torch.zeros((len(self.best), h // k, w // k // 2 + 1), dtype=torch.complex64, device=self.device)
+            self.spectrum_fresh.zero_()
+        new = need[~self.spectrum_fresh[need]]
+        if len(new):
+            self.target_spectra[new] = phase_spectrum(target.to(self.device)[new], k)
+            self.spectrum_fresh[new] = True
+        view = view.to(self.device)
+        view = view if len(need) == view.shape[0] else view[need]  # need is sorted: all slots = all in order (no copy)
+        dyaw, dpitch, peak = rotation_between(phase_spectrum(view, k), self.target_spectra[need], self.fov, w // k)
+        step = 360.0 / self.yaw_cells  # degrees per move
+        self.observe_phase(need, peak, pitch[mask], yaw[mask], dpitch / step, dyaw / step)
 
     def observe_phase(self, idx: torch.Tensor, peak: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor,
                       dpitch: torch.Tensor, dyaw: torch.Tensor) -> None:

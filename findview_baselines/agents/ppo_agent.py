@@ -53,7 +53,7 @@ from findview.episode import Episode
 from findview.runtime import scoped
 from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.give_up import GiveUp
-from findview_baselines.agents.stop_refine import StopRefiner, phase_spectrum, rotation_between
+from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.observations import area_downsample, downsample_factor
 from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
 
@@ -158,13 +158,10 @@ class PPOAgent(Agent):
                 )
             margin = 1 + (refiner.max_moves if refiner is not None else 0)  # the refinement's moves after the walk
             self.give_up = GiveUp(self.num_envs, int(stop_by), self.revisits.yaw_cells, self.device, margin=margin,
-                                  phase=bool(stop_by_phase))
+                                  phase=bool(stop_by_phase), fov=fov)
         if stop_by_phase and (self.give_up is None or fov is None):
             raise ValueError(f"stop_by_phase walks to a pose measured in degrees: it needs stop_by > 0 (got {stop_by}) "
                              f"and the views' fov (got {fov})")
-        self.fov = None if fov is None else float(fov)
-        self._target_spectra: torch.Tensor | None = None  # stop_by_phase: each slot's target spectrum, once per episode
-        self._spectrum_fresh = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         # the last act's network outputs: (slots the policy decided for, their action distribution), or None
         self._last_policy: tuple[torch.Tensor, "Categorical"] | None = None
 
@@ -276,7 +273,6 @@ class PPOAgent(Agent):
             self.refiner.reset(ids)
         if self.give_up is not None:
             self.give_up.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
-            self._spectrum_fresh[torch.tensor(ids, dtype=torch.long, device=self.device)] = False
         for i, ep in zip(ids, episodes):
             self.done[i] = ep is None
             self._rngs[i] = episode_rng(self.seed, ep, self._fallback)
@@ -381,7 +377,7 @@ class PPOAgent(Agent):
         if self.give_up is not None:  # remember the most stop-like pose; walk back to it when the steps left are just enough
             pitch, yaw = self.revisits.pitch[idx], self.revisits.yaw[idx]
             if self.give_up.phase:
-                self._observe_phase(idx, pitch, yaw, *rendered)
+                self.give_up.measure(idx, pitch, yaw, *rendered)
             late = self.give_up.observe(idx, dist.probs[:, STOP], pitch, yaw) & (a_t != STOP)
             if bool(late.any()):
                 a_t = a_t.clone()
@@ -389,33 +385,6 @@ class PPOAgent(Agent):
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t
-
-    def _observe_phase(self, idx: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor, view: torch.Tensor,
-                       target: torch.Tensor) -> None:
-        """Phase correlation of the rendered ``view`` / ``target`` ``(N, 3, H, W)`` for the slots of ``idx`` whose STOP
-        probability has not yet reached the walk's threshold (the others never walk by it), on the grey images
-        averaged over ``k x k`` blocks, ``k = W // 128`` where it divides ``H`` and ``W`` (else 1; 256 -> 128 pixels: as
-        good as full size on the fog val episodes, and cheaper), fed to the give-up in moves (the search memory's
-        grid: degrees per move = 360 / its yaw cells). A slot's target spectrum is taken once per episode."""
-        mask = self.give_up.best[idx] < self.give_up.min_prob
-        need = idx[mask]
-        if len(need) == 0:
-            return
-        h, w = view.shape[-2:]
-        k = max(1, w // 128)
-        k = k if h % k == 0 and w % k == 0 else 1
-        if self._target_spectra is None or self._target_spectra.shape[1:] != (h // k, w // k // 2 + 1):
-            self._target_spectra = torch.zeros((self.num_envs, h // k, w // k // 2 + 1), dtype=torch.complex64, device=self.device)
-            self._spectrum_fresh.zero_()
-        new = need[~self._spectrum_fresh[need]]
-        if len(new):
-            self._target_spectra[new] = phase_spectrum(target.to(self.device)[new], k)
-            self._spectrum_fresh[new] = True
-        view = view.to(self.device)
-        view = view if len(need) == view.shape[0] else view[need]  # need is sorted: all slots = all in order (no copy)
-        dyaw, dpitch, peak = rotation_between(phase_spectrum(view, k), self._target_spectra[need], float(self.fov), w // k)
-        step = 360.0 / self.revisits.yaw_cells  # degrees per move
-        self.give_up.observe_phase(need, peak, pitch[mask], yaw[mask], dpitch / step, dyaw / step)
 
 
 def _register() -> None:
