@@ -43,6 +43,7 @@ def error_of(config_name: str, overrides: list[str]) -> str:
         ("train", ["+experiment=robust_focus"]),
         ("train", ["+experiment=robust_finetune"]),
         ("train", ["+experiment=robust_memory"]),
+        ("train", ["+experiment=robust_polish"]),
         ("train", ["sim=fov60", "corruption.name=weather", "corruption.severity=[1,3]"]),
         ("eval", []),
         *[("eval", [f"agent={a}"]) for a in ("random", "oracle", "orb", "sift", "rotation", "ppo")],
@@ -66,6 +67,23 @@ def test_robust_memory_starts_from_where_the_robust_preset_writes_its_best_check
     assert (stage2.agent.variant, stage2.agent.hidden_size) == (stage1.agent.variant, stage1.agent.hidden_size)
     assert stage2.agent.memory_inputs and not stage1.agent.memory_inputs
     assert stage2.scheduler.start_level == 3  # hard episodes from the first update, no curriculum restart
+
+
+def test_robust_polish_continues_stage_2_as_the_card_runs_it() -> None:
+    """Stage 3 starts from stage 2's last update (latest.pth: the weights of its val_u01000.pth, the stage-2 file),
+    keeps its network (memory inputs, pitch warps) and labels (yaw band 0.5), lets the learner act (beta 0.2 -> 0),
+    and its two search weights write to two run folders (the card averages them)."""
+    stage2 = compose_config("train", ["+experiment=robust_memory"], return_hydra_config=True)
+    runs = [compose_config("train", ["+experiment=robust_polish", f"trainer.dagger.search_weight={w}"], return_hydra_config=True)
+            for w in (0.6, 0.3)]
+    stage3 = runs[0]
+    assert stage3.init_from == f"{stage2.hydra.run.dir}/checkpoints/latest.pth"
+    assert stage3.agent.memory_inputs and stage3.agent.pitch_warps
+    assert stage3.trainer.dagger.search_yaw_band == 0.5
+    assert (stage3.trainer.dagger.beta_start, stage3.trainer.dagger.beta_end) == (0.2, 0.0)
+    assert stage3.trainer.dagger.lr < stage2.trainer.dagger.lr
+    assert stage3.scheduler.start_level == 3
+    assert runs[0].hydra.run.dir != runs[1].hydra.run.dir
 
 
 @pytest.mark.parametrize(

@@ -46,6 +46,7 @@ __all__ = [
     "OutputPathError",
     "save_checkpoint",
     "load_checkpoint",
+    "average_checkpoints",
     "check_writable",
     "capture_rng_state",
     "restore_rng_state",
@@ -170,6 +171,61 @@ def checkpoint_payload(
         "best_val_eps": best_val_eps,
         "trainer": None if trainer_state is None else dict(trainer_state),
     }
+
+
+def average_checkpoints(paths: "list[str | os.PathLike]") -> dict[str, Any]:
+    """The uniform average of the policy weights of two or more checkpoints of one model (a "model soup").
+
+    Meant for runs fine-tuned from one common checkpoint (the same network and the same starting weights), whose
+    weights stay close enough for their mean to be a network of its own. Every floating-point tensor of
+    ``policy`` becomes the sum over the inputs, in the order given, divided by their number (float32 arithmetic
+    as stored); every other tensor (integer buffers) must be equal in all inputs and is kept. The rest of the
+    payload (signature, config, update, env steps) is the first input's; ``val`` and ``best_val_eps`` are
+    ``None`` (no validation measured these weights), ``trainer`` is ``None`` (not a resume point), and
+    ``averaged_from`` lists the inputs as given (strings), with their updates.
+
+    Raises:
+        ValueError: fewer than two paths.
+        CheckpointNotFound, CheckpointError: an input is missing or not a findview checkpoint, or the inputs
+            differ in signature, in their policy's tensor names, shapes or dtypes, or in a non-float tensor
+            (the message names both files and the first difference).
+    """
+    if len(paths) < 2:
+        raise ValueError(f"averaging needs at least two checkpoints, got {len(paths)}")
+    states = [load_checkpoint(p) for p in paths]
+    first, name0 = states[0], str(paths[0])
+    for path, state in zip(paths[1:], states[1:]):
+        label = f"{path} against {name0}"
+        if state["signature"] != first["signature"]:
+            diff = sorted(k for k in set(state["signature"]) | set(first["signature"])
+                          if state["signature"].get(k) != first["signature"].get(k))
+            raise CheckpointError(f"{label}: other model signatures (differ in {', '.join(diff)}); "
+                                  f"expected checkpoints of one network")
+        if list(state["policy"]) != list(first["policy"]):
+            missing = sorted(set(first["policy"]) ^ set(state["policy"]))
+            raise CheckpointError(f"{label}: other policy tensors ({', '.join(missing[:5]) or 'another order'}); "
+                                  f"expected checkpoints of one network")
+        for key, ref in first["policy"].items():
+            other = state["policy"][key]
+            if other.shape != ref.shape or other.dtype != ref.dtype:
+                raise CheckpointError(f"{label}: policy tensor {key} is {tuple(other.shape)} {other.dtype}, "
+                                      f"expected {tuple(ref.shape)} {ref.dtype} as in the first checkpoint")
+            if not ref.is_floating_point() and not torch.equal(other, ref):
+                raise CheckpointError(f"{label}: the non-float policy tensor {key} differs; "
+                                      f"expected equal integer buffers")
+    policy: dict[str, torch.Tensor] = {}
+    for key, ref in first["policy"].items():
+        if ref.is_floating_point():
+            total = ref.clone()
+            for state in states[1:]:
+                total = total + state["policy"][key]
+            policy[key] = total / len(states)
+        else:
+            policy[key] = ref.clone()
+    out = dict(first)
+    out.update(policy=policy, val=None, best_val_eps=None, trainer=None,
+               averaged_from=[{"path": str(p), "update": int(s["update"])} for p, s in zip(paths, states)])
+    return out
 
 
 def load_policy(path: str | os.PathLike, policy: torch.nn.Module, transfer: bool = False,
