@@ -96,5 +96,7 @@ def test_the_tool_writes_once_and_refuses_bad_input(tmp_path: Path) -> None:
     refused = run(str(a), str(wide), "--out", str(tmp_path / "x.pth"))
     assert refused.returncode == 2 and "other model signatures" in refused.stderr
     assert not (tmp_path / "x.pth").exists()
+    alone = run(str(a), "--out", str(tmp_path / "z.pth"))
+    assert alone.returncode == 2 and "at least two checkpoints, got 1" in alone.stderr
     missing = run(str(a), str(tmp_path / "nope.pth"), "--out", str(tmp_path / "y.pth"))
     assert missing.returncode == 2 and "checkpoint not found" in missing.stderr

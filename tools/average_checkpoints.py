@@ -42,9 +42,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     args = p.parse_args(argv)
     out = Path(args.out)
-    if len(args.inputs) < 2:
-        print(f"average_checkpoints: need two or more checkpoints, got {len(args.inputs)}", file=sys.stderr)
-        return 2
     if any(Path(i).resolve() == out.resolve() for i in args.inputs):
         print(f"average_checkpoints: --out {out} is one of the inputs; expected a new file", file=sys.stderr)
         return 2
@@ -53,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         state = average_checkpoints(args.inputs)
-    except (CheckpointError, CheckpointNotFound) as err:
+    except (CheckpointError, CheckpointNotFound, ValueError) as err:  # ValueError: fewer than two inputs
         print(f"average_checkpoints: {err}", file=sys.stderr)
         return 2
     out.parent.mkdir(parents=True, exist_ok=True)

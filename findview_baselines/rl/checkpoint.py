@@ -28,7 +28,7 @@ import os
 import random
 import tempfile
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -173,7 +173,7 @@ def checkpoint_payload(
     }
 
 
-def average_checkpoints(paths: "list[str | os.PathLike]") -> dict[str, Any]:
+def average_checkpoints(paths: Sequence[str | os.PathLike]) -> dict[str, Any]:
     """The uniform average of the policy weights of two or more checkpoints of one model (a "model soup").
 
     Meant for runs fine-tuned from one common checkpoint (the same network and the same starting weights), whose
