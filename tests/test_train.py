@@ -69,6 +69,30 @@ def test_keep_val_checkpoints_writes_every_validation(make_cfg, reference_run: P
     assert best["update"] == lower and all(torch.equal(t, kept[lower]["policy"][n]) for n, t in best["policy"].items())
 
 
+@pytest.mark.parametrize("trainer", ["ppo", "dagger"])
+def test_validation_does_not_change_the_trained_weights(make_cfg, reference_run: Path, tmp_path: Path, trainer: str) -> None:
+    """The same run with validations at updates 3 and 6 and with none ends with the same weights, bit for bit: the
+    val episodes draw from their own generators, so how often a run validates never changes what it learns (the
+    presets whose file is the last update may switch their validations off to save time)."""
+    def run(folder: Path, with_val: bool) -> dict:
+        overrides: dict = {} if with_val else {"trainer.val_interval": 0, "trainer.val_at_end": False}
+        if trainer == "dagger":
+            overrides.update({  # as the robust presets: corrupted targets, search memory, rollout in a second thread
+                "trainer": "dagger", "trainer.dagger.rollout_steps": 8, "trainer.dagger.seq_len": 8,
+                "trainer.dagger.overlap_rollout": True, "corruption.name": "all", "corruption.severity": "[1,5]",
+                "agent.revisit_penalty": 16.0,
+            })
+        train(make_cfg(**overrides), folder)
+        return load(folder / "checkpoints" / "latest.pth")
+
+    validated = load(reference_run / "checkpoints" / "latest.pth") if trainer == "ppo" else run(tmp_path / "val", True)
+    plain = run(tmp_path / "plain", False)
+    assert validated["val"] is not None and plain["val"] is None  # one run validated, the other did not
+    assert validated["update"] == plain["update"] == 6
+    for name, tensor in validated["policy"].items():
+        assert torch.equal(tensor, plain["policy"][name]), name
+
+
 def test_checkpoints_load_with_weights_only(reference_run: Path) -> None:
     ckpt_dir = reference_run / "checkpoints"
     assert sorted(p.name for p in ckpt_dir.iterdir()) == ["best.pth", "latest.pth"]  # no temp files left
