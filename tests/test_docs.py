@@ -37,6 +37,9 @@ pip install -e . && python tools/train.py +experiment=quickstart \\
     trainer.num_updates=5   # trailing comment
 python -m pytest -q tests
 OMP_NUM_THREADS=1 python benchmarks/bench_sim.py --iters 2
+python tools/train.py seed=1 &
+python tools/train.py seed=2 & python tools/eval.py 'a&b'
+wait
 ```
 
 ```
@@ -70,19 +73,22 @@ def test_extractor_finds_commands_joins_splits_and_marks():
         "pip install -e .",
         "python tools/train.py +experiment=quickstart trainer.num_updates=5",
         "OMP_NUM_THREADS=1 python benchmarks/bench_sim.py --iters 2",
+        "python tools/train.py seed=1",  # a background job: run in turn
+        "python tools/train.py seed=2",
+        "python tools/eval.py 'a&b'",
         "python tools/train.py trainer.num_envs=abc",
         "python benchmarks/bench_train.py --device cuda",
         "torchrun --nproc_per_node=K tools/train.py ... trainer.distributed=true",
         "python tools/render_episode.py dataset.root=<sun360_mini>",
     ]
     lines = [c.line for c in cmds]
-    assert lines == [3, 7, 11, 11, 14, 18, 24, 28, 35]
+    assert lines == [3, 7, 11, 11, 14, 15, 16, 16, 21, 27, 31, 38]
     by_text = {c.text: c for c in cmds}
     assert by_text["python tools/train.py trainer.num_envs=abc"].expect_error == (
         "train: error: trainer.num_envs='abc': expected an integer")
     assert by_text["python benchmarks/bench_train.py --device cuda"].skip == "needs a GPU"
     assert by_text["torchrun --nproc_per_node=K tools/train.py ... trainer.distributed=true"].skip == "hours"
-    assert [c.skip for c in cmds].count(None) == 7  # the markers stop at their own block / paragraph
+    assert [c.skip for c in cmds].count(None) == 10  # the markers stop at their own block / paragraph
 
 
 def test_placeholders_and_overrides(tmp_path):

@@ -7,7 +7,8 @@
 What counts as a command: a line of a fenced code block (```, ```bash, ```sh, ```console) or the text of
 an inline code span (paragraphs and table cells) that starts with ``python tools/``, ``python benchmarks/``,
 ``pip install``, ``torchrun`` or ``tensorboard`` (after optional ``VAR=value`` assignments). Backslash
-continuations are joined, ``#`` comments dropped and ``a && b`` chains split.
+continuations are joined, ``#`` comments dropped, ``a && b`` chains split and a background ``a &`` run in
+turn.
 
 How it runs them:
 
@@ -181,7 +182,8 @@ def _strip_comment(line: str) -> str:
 
 
 def split_and(line: str) -> list[str]:
-    """``a && b`` -> [a, b] (``&&`` outside quotes)."""
+    """``a && b`` -> [a, b] (``&&`` outside quotes); ``a & b`` and ``a &`` (a job in the background, beside the
+    next) -> [a, b] and [a]: the checker runs the parts one after the other."""
     parts, quote, start, i = [], None, 0, 0
     while i < len(line):
         ch = line[i]
@@ -189,10 +191,11 @@ def split_and(line: str) -> list[str]:
             quote = None if ch == quote else quote
         elif ch in "'\"":
             quote = ch
-        elif line.startswith("&&", i):
+        elif ch == "&":
+            step = 2 if line.startswith("&&", i) else 1
             parts.append(line[start:i].strip())
-            start = i + 2
-            i += 1
+            start = i + step
+            i += step - 1
         i += 1
     parts.append(line[start:].strip())
     return [p for p in parts if p]
