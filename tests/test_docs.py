@@ -38,7 +38,7 @@ pip install -e . && python tools/train.py +experiment=quickstart \\
 python -m pytest -q tests
 OMP_NUM_THREADS=1 python benchmarks/bench_sim.py --iters 2
 python tools/train.py seed=1 &
-python tools/train.py seed=2 & python tools/eval.py 'a&b'
+python tools/train.py seed=2 & python tools/eval.py 'a&b' > log 2>&1
 wait
 ```
 
@@ -75,7 +75,7 @@ def test_extractor_finds_commands_joins_splits_and_marks():
         "OMP_NUM_THREADS=1 python benchmarks/bench_sim.py --iters 2",
         "python tools/train.py seed=1",  # a background job: run in turn
         "python tools/train.py seed=2",
-        "python tools/eval.py 'a&b'",
+        "python tools/eval.py 'a&b' > log 2>&1",  # a redirection is no separator
         "python tools/train.py trainer.num_envs=abc",
         "python benchmarks/bench_train.py --device cuda",
         "torchrun --nproc_per_node=K tools/train.py ... trainer.distributed=true",

@@ -183,7 +183,8 @@ def _strip_comment(line: str) -> str:
 
 def split_and(line: str) -> list[str]:
     """``a && b`` -> [a, b] (``&&`` outside quotes); ``a & b`` and ``a &`` (a job in the background, beside the
-    next) -> [a, b] and [a]: the checker runs the parts one after the other."""
+    next) -> [a, b] and [a]: the checker runs the parts one after the other. A redirection (``2>&1``, ``&>``) is
+    no separator."""
     parts, quote, start, i = [], None, 0, 0
     while i < len(line):
         ch = line[i]
@@ -191,7 +192,7 @@ def split_and(line: str) -> list[str]:
             quote = None if ch == quote else quote
         elif ch in "'\"":
             quote = ch
-        elif ch == "&":
+        elif ch == "&" and not (line[i - 1:i] in ("<", ">") or line[i + 1:i + 2] == ">"):  # not 2>&1, &>
             step = 2 if line.startswith("&&", i) else 1
             parts.append(line[start:i].strip())
             start = i + step
