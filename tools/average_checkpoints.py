@@ -53,8 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     except (CheckpointError, CheckpointNotFound, ValueError) as err:  # ValueError: fewer than two inputs
         print(f"average_checkpoints: {err}", file=sys.stderr)
         return 2
-    out.parent.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(out, state)
+    save_checkpoint(out, state)  # atomic; makes the folder
     print(f"averaged {len(args.inputs)} checkpoints -> {out}")
     return 0
 

@@ -181,7 +181,7 @@ def _strip_comment(line: str) -> str:
     return line.rstrip()
 
 
-def split_and(line: str) -> list[str]:
+def split_commands(line: str) -> list[str]:
     """``a && b`` -> [a, b] (``&&`` outside quotes); ``a & b`` and ``a &`` (a job in the background, beside the
     next) -> [a, b] and [a]: the checker runs the parts one after the other. A redirection (``2>&1``, ``&>``) is
     no separator."""
@@ -236,7 +236,7 @@ def _fenced(doc: str, block: list[tuple[int, str]], skip: Optional[str]) -> list
                     break
                 following.append(t.strip())
             expect = next((t for t in following if re.match(r"[\w.-]+: error: ", t)), None)
-        for part in split_and(_strip_comment(text)):
+        for part in split_commands(_strip_comment(text)):
             if is_command(part):
                 out.append(DocCommand(doc, no, " ".join(part.split()), expect, skip))
     return out
@@ -251,7 +251,7 @@ def _inline(doc: str, para: list[tuple[int, str]], skip: Optional[str]) -> list[
         pos += len(t) + 1
     for m in re.finditer(r"(?<!`)`([^`]+)`(?!`)", text):
         line = max(no for off, no in offsets if off <= m.start())
-        for part in split_and(m.group(1).replace("\n", " ")):
+        for part in split_commands(m.group(1).replace("\n", " ")):
             if is_command(part):
                 out.append(DocCommand(doc, line, " ".join(part.split()), None, skip))
     return out
