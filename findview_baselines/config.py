@@ -251,6 +251,17 @@ class PPOAgentConfig:
     revisit_row_stride: int = 0
     """With the search memory on: once the agent has looked around a full turn near its row, it moves to the next
     search row, this many 1-step moves above / below its start (alternately: +s, -s, +2s, -2s, ...). 0 = off."""
+    revisit_near_rows: int = 0
+    """With the search memory on: a move also pays ``revisit_near_penalty`` per visit of the most visited cell near
+    its destination (a yaw move: its column within this many rows; a pitch move: its column up to this many rows
+    beyond it), counting visits at least ``revisit_near_age`` steps old, so that panning back over yaw seen long ago
+    one row off the old path costs too. 0 = off (the memory every shipped agent trained with). See
+    findview_baselines/rl/search_memory.py, "Near visits"."""
+    revisit_near_penalty: float = 4.0
+    """With ``revisit_near_rows``: logit units per near visit."""
+    revisit_near_age: int = 1
+    """With ``revisit_near_rows``: steps since a near cell's last visit before that visit counts (1: every earlier
+    visit; larger ages leave the recent path free, which at FoV 90 gave back all of the gain on hard episodes)."""
     memory_inputs: bool = False
     """The network reads its search memory (needs ``revisit_penalty > 0`` and 1-degree actions): per step, whether it
     has looked at 90% of a full turn of yaw cells near its current row, how much of a turn, whether the rows above / below have been, and its pitch
@@ -314,6 +325,9 @@ class PPOAgentConfig:
         )
         check(self.fine_scales >= 1, "agent.fine_scales", self.fine_scales, "a positive number of pyramid levels")
         check(self.revisit_row_stride >= 0, "agent.revisit_row_stride", self.revisit_row_stride, "0 (off) or a number of steps")
+        check(self.revisit_near_rows >= 0, "agent.revisit_near_rows", self.revisit_near_rows, "0 (off) or a number of rows")
+        check(self.revisit_near_penalty > 0, "agent.revisit_near_penalty", self.revisit_near_penalty, "a positive number of logit units")
+        check(self.revisit_near_age >= 1, "agent.revisit_near_age", self.revisit_near_age, "a number of steps >= 1")
         check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
         check(self.stop_prob is None or 0 < self.stop_prob <= 1, "agent.stop_prob", self.stop_prob,
               "null or a probability in (0, 1]")

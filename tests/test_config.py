@@ -116,6 +116,8 @@ def test_robust_polish_continues_stage_2_as_the_card_runs_it() -> None:
         ("eval", ["agent=ppo", "agent.stop_min_prob=0"], "agent.stop_min_prob=0.0: expected null or a probability in (0, 1]"),
         ("eval", ["agent=ppo", "agent.stop_prob=0.3", "agent.stop_min_prob=0.5"],
          "agent.stop_min_prob=0.5: expected at most agent.stop_prob=0.3"),
+        ("eval", ["agent=ppo", "agent.revisit_near_rows=-2"], "agent.revisit_near_rows=-2: expected 0 (off) or a number of rows"),
+        ("eval", ["agent=ppo", "agent.revisit_near_age=0"], "agent.revisit_near_age=0: expected a number of steps >= 1"),
         ("eval", ["agent=ppo", "agent.stop_by_phase=true"],
          "agent.stop_by=0: expected a step number (T) with agent.stop_by_phase=true"),
     ],

@@ -246,3 +246,76 @@ def test_stop_min_prob_refuses_an_unsure_stop_for_the_most_likely_move():
         PPOAgent(policy, 1, stop_min_prob=0.0)
     with pytest.raises(ValueError, match="stop_min_prob"):
         PPOAgent(policy, 1, stop_prob=0.3, stop_min_prob=0.4)
+
+
+
+def walk_guard(guard: RevisitPenalty, slot: int, moves: list[int]) -> None:
+    """Walk slot ``slot`` of ``guard`` from (0, 0) through ``moves`` (a new view per pose), then arrive."""
+    idx, pose = torch.tensor([slot]), [0, 0]
+    for a in moves:
+        guard.arrive(idx, pose_view(*pose)[None])
+        guard.moved(idx, torch.tensor([a]))
+        pose[0] += {UP: 1, DOWN: -1}.get(a, 0)
+        pose[1] += {RIGHT: 1, LEFT: -1}.get(a, 0)
+    guard.arrive(idx, pose_view(*pose)[None])
+
+
+def test_near_visits_are_counted_beside_a_moves_destination():
+    # visited: row 0, yaw 0..3; then (1, 3), (2, 3); now at (2, 2). Worked by hand, in UP, DOWN, LEFT, RIGHT order:
+    # exact cells (penalty 2 per visit): UP (3, 2) 0, DOWN (1, 2) 0, LEFT (2, 1) 0, RIGHT (2, 3) 1 -> [0, 0, 0, 2].
+    # near rows 2 (0.5 per visit of the most visited near cell): UP reads yaw 2, rows 4, 5 (none); DOWN yaw 2, rows
+    # 0, -1 (row 0 visited); LEFT yaw 1, rows 0, 1, 3, 4 (row 0); RIGHT yaw 3, rows 0, 1, 3, 4 (rows 0 and 1).
+    moves = [RIGHT, RIGHT, RIGHT, UP, UP, LEFT]
+    exact = RevisitPenalty(1, 2.0)
+    near = RevisitPenalty(2, 2.0, near_rows=2, near_penalty=0.5, near_age=1)
+    walk_guard(exact, 0, moves)
+    walk_guard(near, 1, moves)  # slot 1 of two: the gathers are batched over slots
+    assert exact.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.0, 2.0]]
+    assert near.move_penalties(torch.tensor([1])).tolist() == [[0.0, 0.5, 0.5, 2.5]]
+    assert near.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.0, 0.0]]  # slot 0 never moved
+    # near rows 1: DOWN reads yaw 2, row 0 (visited); LEFT yaw 1, rows 1, 3 (none); RIGHT yaw 3, rows 1, 3 (row 1)
+    narrow = RevisitPenalty(1, 2.0, near_rows=1, near_penalty=0.5, near_age=1)
+    walk_guard(narrow, 0, moves)
+    assert narrow.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.5, 0.0, 2.5]]
+    # near_age 5: one step per arrival, so the clock at (2, 2) reads 7; yaw 2 of row 0 was last visited at step 3
+    # (4 steps ago: too recent, DOWN is free), yaw 1 at step 2 (5 steps ago: LEFT pays), yaw 3 of row 0 at step 4
+    # and of row 1 at step 5 (too recent: RIGHT pays its exact visit only)
+    aged = RevisitPenalty(1, 2.0, near_rows=2, near_penalty=0.5, near_age=5)
+    walk_guard(aged, 0, moves)
+    assert aged.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.5, 2.0]]
+    resumed = RevisitPenalty(1, 2.0, near_rows=2, near_penalty=0.5, near_age=5)
+    resumed.load_state_dict(aged.state_dict())  # the resume state keeps the ages
+    assert resumed.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.5, 2.0]]
+    for bad in ({"near_rows": -1, "near_penalty": 1.0}, {"near_rows": 2}, {"near_rows": 2, "near_penalty": 1.0, "near_age": 0}):
+        with pytest.raises(ValueError, match="near visits"):
+            RevisitPenalty(1, 1.0, **bad)
+
+
+def test_near_visits_stop_a_resweep_of_the_same_yaw_one_row_up():
+    # a policy that pans RIGHT over yaw 0..5 on even rows and LEFT back on odd ones, climbing one row (UP, logit 0)
+    # at each end (a search that keeps going back over what it has seen, as a learned agent drawn to a look-alike
+    # region does). Exact cells never repeat, so the plain memory lets it pan every row. With near rows 2 (penalty 3,
+    # any age) a pan over yaw seen within 2 rows costs 3 per step (1 - 3 < UP's 0): it climbs until the pan is 3 rows
+    # from the last.
+    def panned_rows(near_rows: int, near_age: int = 1) -> list[int]:
+        guard = RevisitPenalty(1, 3.0, near_rows=near_rows, near_penalty=3.0 if near_rows else 0.0, near_age=near_age)
+        idx, pose, rows = torch.tensor([0]), [0, 0], []
+        for _ in range(24):
+            logits = torch.tensor([[0.0, -9.0, -9.0, -9.0, -9.0]])
+            if pose[0] % 2 == 0 and pose[1] < 5:
+                logits[0, RIGHT] = 1.0
+            elif pose[0] % 2 == 1 and pose[1] > 0:
+                logits[0, LEFT] = 1.0
+            a = int(guard.adjust(idx, pose_view(*pose)[None], logits).argmax(dim=-1))
+            guard.moved(idx, torch.tensor([a]))
+            pose[0] += {UP: 1, DOWN: -1}.get(a, 0)
+            pose[1] += {RIGHT: 1, LEFT: -1}.get(a, 0)
+            if a in (LEFT, RIGHT):
+                rows.append(pose[0])
+        return sorted(set(rows))
+
+    # 24 steps: 5 pan moves and 1 climb per row (plain); 5 pan moves and 3 climbs per panned row (near rows 2)
+    assert panned_rows(0) == [0, 1, 2, 3]
+    assert panned_rows(2) == [0, 3, 6]
+    # visits younger than near_age do not count: with an age of 100 steps the 24-step walk is the plain one
+    assert panned_rows(2, near_age=100) == [0, 1, 2, 3]

@@ -55,7 +55,7 @@ from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.give_up import GiveUp
 from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.observations import area_downsample, downsample_factor
-from findview_baselines.rl.search_memory import make_revisit_penalty, memory_band
+from findview_baselines.rl.search_memory import NearVisits, make_revisit_penalty, memory_band
 
 if TYPE_CHECKING:
     from torch.distributions import Categorical
@@ -88,6 +88,8 @@ class PPOAgent(Agent):
             (0: off; see :mod:`findview_baselines.rl.search_memory`).
         revisit_row_stride: with the memory on, after a turn move to the next search row this many 1-step
             moves up or down (alternately, growing); 0: off.
+        revisit_near: with the memory on, its near visits (:class:`~findview_baselines.rl.search_memory.NearVisits`;
+            the default: off).
         refiner: a :class:`~findview_baselines.agents.stop_refine.StopRefiner` for the final refinement of the
             policy's stops (``None``: the policy's stops stand).
         stop_prob: STOP whenever the policy gives STOP at least this probability, even when a move has more
@@ -120,6 +122,7 @@ class PPOAgent(Agent):
         stop_by: int = 0,
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
+        revisit_near: NearVisits = NearVisits(),
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -137,7 +140,8 @@ class PPOAgent(Agent):
         self.done = np.zeros(self.num_envs, dtype=bool)
         self._fallback = np.random.default_rng(self.seed)
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
-        self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_row_stride)
+        self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_row_stride,
+                                             revisit_near)
         self.refiner = refiner
         self.memory_band = 0  # rows of the search memory's band, when the network reads the memory
         if getattr(policy, "memory_inputs", 0):
@@ -184,6 +188,7 @@ class PPOAgent(Agent):
         stop_by: int = 0,
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
+        revisit_near: NearVisits = NearVisits(),
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -231,7 +236,7 @@ class PPOAgent(Agent):
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov,
-            stop_by, stop_min_prob, stop_by_phase,
+            stop_by, stop_min_prob, stop_by_phase, revisit_near,
         )
 
     @classmethod
@@ -257,7 +262,7 @@ class PPOAgent(Agent):
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
             refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
-            stop_by_phase=cfg.stop_by_phase,
+            stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg),
         )
 
     # acting --------------------------------------------------------------------------------------

@@ -54,7 +54,7 @@ EpisodeToolConfig = Union[EvalConfig, RenderEpisodeConfig, RenderCorruptionsConf
 #: the keys of a learned agent's checkpoint signature that are fields of its agent config (the model)
 _MODEL_KEYS = ("variant", "hidden_size", "fine_shifts", "fine_scales")
 #: the learned agent's search-memory settings (a training run records the ones it validated with)
-_SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride")
+_SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride", "revisit_near_rows", "revisit_near_penalty", "revisit_near_age")
 
 
 class EvalError(UserError):
@@ -215,9 +215,9 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     ``sim.fov`` / ``sim.height`` / ``sim.width`` come from the checkpoint (the view size its run rendered,
     an integer multiple of its network's with ``agent.downsample``) unless given on the command line
     (or a ``sim=`` preset was chosen), and ``agent.fov`` follows ``sim.fov`` unless given; ``agent`` becomes a learned-agent config with the checkpoint's model
-    (keeping ``agent.sample`` when the learned agent was chosen); the search memory
-    (``agent.revisit_penalty``, ``agent.revisit_row_stride``) is the command line's, else the training
-    run's, else the schema's. ``cfg`` itself is not changed.
+    (keeping ``agent.sample`` when the learned agent was chosen); the search memory (``agent.revisit_penalty``,
+    ``agent.revisit_row_stride``, ``agent.revisit_near_*``) is the command line's, else the training run's, else the
+    schema's. ``cfg`` itself is not changed.
 
     Raises:
         EvalError: ``agent=<a rule-based agent>`` was given with the checkpoint (the one place this is checked).

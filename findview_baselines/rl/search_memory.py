@@ -18,6 +18,16 @@ move the dead-reckoned pose, and the cell it aimed at gains a visit, so pressing
 appeal like a loop does. (A move in a textureless region can leave a small view unchanged too; it is then
 taken for a blocked one, so the dead reckoning is approximate there, where the view cannot tell poses apart.)
 
+**Near visits** (``near_rows > 0``): a search that pans back over the yaw it has seen, one row higher or lower each
+time, visits new cells on every pass, so exact-cell counts never stop it; a learned agent drawn to a region that looks
+like its target does this for thousands of steps. With ``near_rows = r``, a move also pays ``near_penalty`` per visit of
+the most visited cell near its destination: for ``LEFT`` / ``RIGHT`` the cells of the destination's column within
+``r`` rows of it, for ``UP`` / ``DOWN`` those of its column 1 to ``r`` rows beyond it in the move's direction. Only
+visits at least ``near_age`` steps old count (1: every earlier visit; a larger age leaves recent ones free, such as
+the staircase of pitch and yaw moves onto a target just passed). ``near_penalty`` below ``penalty`` keeps it a nudge:
+going back over ground a few rows off the old path costs less than an exact revisit, and a move the policy prefers by
+a wide margin (its last moves onto a target it sees) is still taken.
+
 **Row search** (``row_stride > 0``): the memory alone leaves a finished row one step at a time, so a target far
 above or below is found late or never. With a stride ``s`` (in steps; 45 = half of a 90-degree FoV), once the
 rows within 2 steps of the current one hold ``row_cover`` of a full turn of yaw cells, the agent's moves are
@@ -27,17 +37,19 @@ the policy acts again. A forced move that is blocked (the pitch limit) skips to 
 
 Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at
 1 degree) on the policy's device, beside a running per-column count of the seen cells below each row (the same
-size), so the band sums of :meth:`RevisitPenalty.memory_features` are a few gathers, not a pass over the grid;
+size), so the band sums of :meth:`RevisitPenalty.memory_features` are a few gathers, not a pass over the grid (with
+near visits, one int32 tensor of the same shape holds each cell's last-visit step, 520 KB per slot);
 every operation is batched over the slots (no Python loop over environments).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-__all__ = ["MEMORY_FEATURES", "SEARCH_ROWS", "RevisitPenalty", "make_revisit_penalty", "memory_band"]
+__all__ = ["MEMORY_FEATURES", "NearVisits", "SEARCH_ROWS", "RevisitPenalty", "make_revisit_penalty", "memory_band"]
 
 #: the search rows of :meth:`RevisitPenalty.memory_features`, in units of ``band + 1`` steps from the start row
 SEARCH_ROWS = (1, -1, 2, -2)
@@ -52,18 +64,43 @@ def memory_band(fov: float, step_deg: int = 1) -> int:
     return max(1, int(round(float(fov) / 2.0 / int(step_deg))) - 1)
 
 
+@dataclass(frozen=True)
+class NearVisits:
+    """The near-visit settings of a search memory (module docstring, "Near visits"; ``rows = 0``: off).
+
+    Attributes:
+        rows: rows (1-degree steps) of a move's near cells.
+        penalty: logit units per visit of the most visited near cell.
+        age: steps since a near cell's last visit before that visit counts.
+    """
+
+    rows: int = 0
+    penalty: float = 0.0
+    age: int = 1
+
+    @classmethod
+    def of(cls, agent: Any) -> "NearVisits":
+        """The settings of a learned agent's typed config (``revisit_near_rows``, ``_penalty``, ``_age``)."""
+        return cls(int(agent.revisit_near_rows), float(agent.revisit_near_penalty), int(agent.revisit_near_age))
+
+
 def make_revisit_penalty(
-    num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0
+    num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0,
+    near: NearVisits = NearVisits(),
 ) -> "RevisitPenalty | None":
-    """The search memory of ``num_envs`` slots, or ``None`` when ``revisit_penalty`` is 0 (off).
+    """The search memory of ``num_envs`` slots, or ``None`` when ``revisit_penalty`` is 0 (off); ``near``: its near
+    visits (:class:`NearVisits`).
 
     Raises:
-        ValueError: a negative or NaN penalty, or a negative stride.
+        ValueError: a negative or NaN penalty, a negative stride, or bad near-visit settings.
     """
     penalty = float(revisit_penalty)
     if penalty < 0 or penalty != penalty:
         raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
-    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride)) if penalty > 0 else None
+    if penalty == 0:
+        return None
+    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride), near_rows=near.rows,
+                          near_penalty=near.penalty, near_age=near.age)
 
 #: (pitch, yaw) grid steps of UP, DOWN, LEFT, RIGHT (STOP does not move)
 _MOVES = ((1, 0), (-1, 0), (0, -1), (0, 1))
@@ -81,14 +118,21 @@ class RevisitPenalty:
             (180 degrees covers any start and target).
         row_stride: row search stride in steps (0: off; see the module docstring).
         row_cover: share of a full turn of yaw cells seen near the current row that ends it (0 < x <= 1).
+        near_rows: rows (steps) of the near visits a move pays for (0: off; see the module docstring, "Near visits").
+        near_penalty: logit units per near visit (``> 0`` when ``near_rows > 0``).
+        near_age: steps since a near cell's last visit before that visit counts (``>= 1``).
     """
 
     def __init__(
         self, num_envs: int, penalty: float, device: str | torch.device = "cpu", step_deg: int = 1,
         max_pitch_steps: int | None = None, row_stride: int = 0, row_cover: float = 0.9,
+        near_rows: int = 0, near_penalty: float = 0.0, near_age: int = 1,
     ) -> None:
         if not penalty > 0:
             raise ValueError(f"revisit penalty must be > 0 logit units per visit, got {penalty}")
+        if int(near_rows) < 0 or (int(near_rows) > 0 and not float(near_penalty) > 0) or int(near_age) < 1:
+            raise ValueError(f"near visits: need near_rows >= 0 rows, near_penalty > 0 logit units when near_rows > 0, "
+                             f"near_age >= 1 step; got {near_rows}, {near_penalty}, {near_age}")
         if int(row_stride) < 0 or not 0.0 < float(row_cover) <= 1.0:
             raise ValueError(f"row search: need row_stride >= 0 steps and 0 < row_cover <= 1, got {row_stride}, {row_cover}")
         if int(step_deg) < 1 or 360 % int(step_deg):
@@ -107,6 +151,15 @@ class RevisitPenalty:
         self.last_move = torch.full((n,), -1, dtype=torch.long, device=self.device)  # -1: none pending
         self.last_view: torch.Tensor | None = None
         self._moves = torch.tensor(_MOVES, dtype=torch.long, device=self.device)  # (4, 2)
+        # near visits: per move, the row offsets of its near cells from its destination, (4, 2 * near_rows)
+        r = self.near_rows = int(near_rows)
+        self.near_penalty, self.near_age = float(near_penalty), int(near_age)
+        beyond, side = list(range(1, r + 1)), [k for k in range(-r, r + 1) if k]
+        self._near_rows = torch.tensor([beyond + beyond, [-k for k in beyond] * 2, side, side],
+                                       dtype=torch.long, device=self.device)
+        # the step of each cell's last visit and each slot's steps since its reset (kept with near visits only)
+        self.last_visit = torch.zeros(self.visits.shape if r else (n, 1, 1), dtype=torch.int32, device=self.device)
+        self.clock = torch.zeros(n, dtype=torch.int32, device=self.device)
         # row search (row_stride > 0): after a turn, move to the next search row, start + s, - s, + 2s, - 2s, ...
         self.row_stride = int(row_stride)
         self.cover_cells = max(1, int(round(float(row_cover) * self.yaw_cells)))
@@ -119,6 +172,8 @@ class RevisitPenalty:
         """Slots ``env_ids`` (long tensor) start a new episode at offset (0, 0) with no visits."""
         ids = env_ids.to(self.device)
         self.visits[ids] = 0
+        self.last_visit[ids] = 0
+        self.clock[ids] = 0
         self.seen_below[ids] = 0
         self.pitch[ids] = 0
         self.yaw[ids] = 0
@@ -134,6 +189,8 @@ class RevisitPenalty:
         ids = env_ids.to(self.device)
         rows = self.pitch[ids] + self.max_pitch
         self.visits[ids, rows] = torch.clamp(self.visits[ids, rows], min=1)
+        if self.near_rows:  # the turn it did not make lies in the past: older than any near_age
+            self.last_visit[ids, rows] = -(2 ** 30)
         self._recount(ids)
 
     def _recount(self, ids: torch.Tensor) -> None:
@@ -146,6 +203,8 @@ class RevisitPenalty:
         tensors, distinct slots); a cell seen for the first time adds one to its column's counts above it."""
         first = self.visits[slots, rows, cols] == 0
         self.visits[slots, rows, cols] += 1
+        if self.near_rows:
+            self.last_visit[slots, rows, cols] = self.clock[slots]
         above = (self._row_ids[None, :] > rows[:, None]) & first[:, None]  # (M, rows + 1)
         self.seen_below[slots, :, cols] += above.to(torch.int16)
 
@@ -177,6 +236,7 @@ class RevisitPenalty:
         """Slots ``idx`` ``(K,)`` arrive at their current pose: apply their pending moves (unless ``view``
         ``(K, 3, H, W)`` shows a blocked one) and count the visit. Call once per step, before :meth:`penalise`."""
         idx = idx.to(self.device)
+        self.clock[idx] += 1
         self._settle(idx, view.to(self.device))
         self._visit(idx, self.pitch[idx] + self.max_pitch, self.yaw[idx])
 
@@ -196,10 +256,19 @@ class RevisitPenalty:
 
     def move_penalties(self, idx: torch.Tensor) -> torch.Tensor:
         """``(K, 4)`` float32: the logit units :meth:`penalise` subtracts from UP, DOWN, LEFT, RIGHT of slots ``idx``
-        (``penalty x`` earlier visits of each move's destination). Call it after :meth:`arrive`."""
+        (``penalty x`` earlier visits of each move's destination, plus ``near_penalty x`` the visits of its most
+        visited near cell, module docstring "Near visits"). Call it after :meth:`arrive`."""
         idx = idx.to(self.device)
-        p, y = self._destinations(idx)
-        return self.penalty * self.visits[idx[:, None], p, y].to(torch.float32)
+        p, y = self._destinations(idx)  # (K, 4) each
+        out = self.penalty * self.visits[idx[:, None], p, y].to(torch.float32)
+        if self.near_rows:
+            rows = p[:, :, None] + self._near_rows[None]  # (K, 4, 2 * near_rows)
+            inside = (rows >= 0) & (rows < self.visits.shape[1])
+            cells = (idx[:, None, None], rows.clamp(0, self.visits.shape[1] - 1), y[:, :, None])
+            old = self.clock[idx, None, None] - self.last_visit[cells] >= self.near_age
+            near = torch.where(old & inside, self.visits[cells], 0).amax(dim=-1)
+            out = out + self.near_penalty * near.to(torch.float32)
+        return out
 
     def memory_features(self, idx: torch.Tensor, band: int) -> torch.Tensor:
         """What the memory says about the search so far, as ``(K, MEMORY_FEATURES)`` float32 inputs for a policy.
@@ -298,6 +367,8 @@ class RevisitPenalty:
             "last_move": self.last_move.cpu().clone(),
             "last_view": None if self.last_view is None else self.last_view.cpu().clone(),
             "row": torch.stack([self.row_k, self.row_target, self.row_seek.long(), self.last_blocked.long()]).cpu(),
+            "last_visit": self.last_visit.cpu().clone(),
+            "clock": self.clock.cpu().clone(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -320,3 +391,6 @@ class RevisitPenalty:
             self.last_blocked.copy_(row[3].bool())
         last = state.get("last_view")
         self.last_view = None if last is None else last.to(self.device).clone()
+        if state.get("last_visit") is not None and tuple(state["last_visit"].shape) == tuple(self.last_visit.shape):
+            self.last_visit.copy_(state["last_visit"])
+            self.clock.copy_(state["clock"])
