@@ -254,8 +254,8 @@ class PPOAgentConfig:
     revisit_near_rows: int = 0
     """With the search memory on: a move also pays ``revisit_near_penalty`` per visit of the most visited cell near
     its destination (a yaw move: its column within this many rows; a pitch move: its column up to this many rows
-    beyond it), counting visits at least ``revisit_near_age`` steps old, so that panning back over yaw seen long ago
-    one row off the old path costs too. 0 = off (the memory every shipped agent trained with). See
+    beyond it), counting visits at least ``revisit_near_age`` steps old, so that going back over yaw it has seen, one
+    row off its old path, costs too. 0 = off (the memory every shipped agent trained with). See
     findview_baselines/rl/search_memory.py, "Near visits"."""
     revisit_near_penalty: float = 4.0
     """With ``revisit_near_rows``: logit units per near visit."""

@@ -479,9 +479,12 @@ def test_search_yaw_band_after_applies_the_band_once_the_row_search_is_under_way
     assert len(trainer.buffer) == 4 * cfg.rollout_steps // cfg.seq_len
 
 
-def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True, revisit_penalty: float = 0.0):
+def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True, revisit_penalty: float = 0.0,
+               near_rows: int = 0):
     """A small DAgger run (correlation policy, aux loss on, set labels, tiny FIFO buffer that wraps, curriculum);
-    resumes from ``state`` when given."""
+    resumes from ``state`` when given. ``near_rows > 0``: the search memory's near visits (1 logit per visit)."""
+    from findview_baselines.rl.search_memory import NearVisits
+
     torch.manual_seed(0)
     env = sampled_env(images, 3, 32, 30, 120, seed=11)
     policy = Policy(32, 32, variant="correlation", hidden_size=16)
@@ -492,7 +495,8 @@ def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True
     )
     levels: list[int] = []
     trainer = DAggerTrainer(env, policy, cfg, total_updates=6, scheduler=DifficultyScheduler(6), set_level=lambda k: (
-        levels.append(k), setattr(env.source, "level", k)), revisit_penalty=revisit_penalty)
+        levels.append(k), setattr(env.source, "level", k)), revisit_penalty=revisit_penalty,
+        revisit_near=NearVisits(near_rows, 1.0, 1) if near_rows else NearVisits())
     if state is None:
         trainer.start()
     else:
@@ -502,13 +506,14 @@ def dagger_run(images, updates: int, state: dict | None = None, aux: bool = True
     return trainer, levels
 
 
-@pytest.mark.parametrize("revisit_penalty", [0.0, 2.0])
-def test_exact_resume_half_plus_half_equals_one_run(panoramas, revisit_penalty) -> None:
+@pytest.mark.parametrize("revisit_penalty, near_rows", [(0.0, 0), (2.0, 0), (2.0, 4)])
+def test_exact_resume_half_plus_half_equals_one_run(panoramas, revisit_penalty, near_rows) -> None:
     """6 updates in one go == 3 updates, an abandoned 4th (stop request), save, load, 3 more; also when the
-    learner acts with its search memory (whose visit counts are part of the resume state)."""
-    straight, levels = dagger_run(panoramas, 6, revisit_penalty=revisit_penalty)
+    learner acts with its search memory (whose visit counts, and with near visits their steps, are part of the
+    resume state)."""
+    straight, levels = dagger_run(panoramas, 6, revisit_penalty=revisit_penalty, near_rows=near_rows)
     assert levels == [1, 2, 3]
-    first, _ = dagger_run(panoramas, 3, revisit_penalty=revisit_penalty)
+    first, _ = dagger_run(panoramas, 3, revisit_penalty=revisit_penalty, near_rows=near_rows)
     calls = iter(range(100))
     with pytest.raises(UpdateAbandoned):  # a stop request in the middle of the 4th rollout
         first.train_update(should_stop=lambda: next(calls) >= 5)
@@ -516,10 +521,13 @@ def test_exact_resume_half_plus_half_equals_one_run(panoramas, revisit_penalty) 
     torch.save(first.state_dict(), blob)
     blob.seek(0)
     state = torch.load(blob, weights_only=True)
-    resumed, _ = dagger_run(panoramas, 3, state=state, revisit_penalty=revisit_penalty)
+    resumed, _ = dagger_run(panoramas, 3, state=state, revisit_penalty=revisit_penalty, near_rows=near_rows)
     if revisit_penalty:
         assert int(straight.revisits.visits.sum()) > 0
         assert torch.equal(straight.revisits.visits, resumed.revisits.visits)
+    if near_rows:
+        assert int(straight.revisits.clock.sum()) > 0
+        assert torch.equal(straight.revisits.last_visit, resumed.revisits.last_visit)
     assert resumed.update == straight.update == 6 and resumed.env_steps == straight.env_steps
     for (name, a), b in zip(straight.policy.state_dict().items(), resumed.policy.state_dict().values()):
         assert torch.equal(a, b), name
