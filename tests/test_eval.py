@@ -496,7 +496,7 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     near = ["agent.revisit_near_rows=16", "agent.revisit_near_penalty=2.5", "agent.revisit_near_age=7"]
     revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *near), near), 2,
                            torch.device("cpu"))[0].revisits
-    assert (revisits.near_rows, revisits.near_penalty, revisits.near_age) == (16, 2.5, 7)
+    assert (revisits.near.rows, revisits.near.penalty, revisits.near.age) == (16, 2.5, 7)
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy

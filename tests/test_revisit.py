@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
-from findview_baselines.rl.search_memory import RevisitPenalty
+from findview_baselines.rl.search_memory import NearVisits, RevisitPenalty
 
 
 def pose_view(pitch: int, yaw: int) -> torch.Tensor:
@@ -267,28 +267,31 @@ def test_near_visits_are_counted_beside_a_moves_destination():
     # 0, -1 (row 0 visited); LEFT yaw 1, rows 0, 1, 3, 4 (row 0); RIGHT yaw 3, rows 0, 1, 3, 4 (rows 0 and 1).
     moves = [RIGHT, RIGHT, RIGHT, UP, UP, LEFT]
     exact = RevisitPenalty(1, 2.0)
-    near = RevisitPenalty(2, 2.0, near_rows=2, near_penalty=0.5, near_age=1)
+    near = RevisitPenalty(2, 2.0, near=NearVisits(2, 0.5, 1))
     walk_guard(exact, 0, moves)
     walk_guard(near, 1, moves)  # slot 1 of two: the gathers are batched over slots
     assert exact.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.0, 2.0]]
     assert near.move_penalties(torch.tensor([1])).tolist() == [[0.0, 0.5, 0.5, 2.5]]
     assert near.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.0, 0.0]]  # slot 0 never moved
     # near rows 1: DOWN reads yaw 2, row 0 (visited); LEFT yaw 1, rows 1, 3 (none); RIGHT yaw 3, rows 1, 3 (row 1)
-    narrow = RevisitPenalty(1, 2.0, near_rows=1, near_penalty=0.5, near_age=1)
+    narrow = RevisitPenalty(1, 2.0, near=NearVisits(1, 0.5, 1))
     walk_guard(narrow, 0, moves)
     assert narrow.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.5, 0.0, 2.5]]
     # near_age 5: one step per arrival, so the clock at (2, 2) reads 7; yaw 2 of row 0 was last visited at step 3
     # (4 steps ago: too recent, DOWN is free), yaw 1 at step 2 (5 steps ago: LEFT pays), yaw 3 of row 0 at step 4
     # and of row 1 at step 5 (too recent: RIGHT pays its exact visit only)
-    aged = RevisitPenalty(1, 2.0, near_rows=2, near_penalty=0.5, near_age=5)
+    aged = RevisitPenalty(1, 2.0, near=NearVisits(2, 0.5, 5))
     walk_guard(aged, 0, moves)
     assert aged.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.5, 2.0]]
-    resumed = RevisitPenalty(1, 2.0, near_rows=2, near_penalty=0.5, near_age=5)
+    resumed = RevisitPenalty(1, 2.0, near=NearVisits(2, 0.5, 5))
     resumed.load_state_dict(aged.state_dict())  # the resume state keeps the ages
     assert resumed.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.5, 2.0]]
-    for bad in ({"near_rows": -1, "near_penalty": 1.0}, {"near_rows": 2}, {"near_rows": 2, "near_penalty": 1.0, "near_age": 0}):
+    for bad in ({"rows": -1, "penalty": 1.0}, {"rows": 2}, {"rows": 2, "penalty": 1.0, "age": 0}):
         with pytest.raises(ValueError, match="near visits"):
-            RevisitPenalty(1, 1.0, **bad)
+            RevisitPenalty(1, 1.0, near=NearVisits(**bad))
+    # a resume state saved without near visits has no ages to restore: refused, not silently aged
+    with pytest.raises(ValueError, match="saved without near visits"):
+        RevisitPenalty(1, 2.0, near=NearVisits(2, 0.5, 5)).load_state_dict(exact.state_dict())
 
 
 def test_near_visits_stop_a_resweep_of_the_same_yaw_one_row_up():
@@ -298,7 +301,7 @@ def test_near_visits_stop_a_resweep_of_the_same_yaw_one_row_up():
     # any age) a pan over yaw seen within 2 rows costs 3 per step (1 - 3 < UP's 0): it climbs until the pan is 3 rows
     # from the last.
     def panned_rows(near_rows: int, near_age: int = 1) -> list[int]:
-        guard = RevisitPenalty(1, 3.0, near_rows=near_rows, near_penalty=3.0 if near_rows else 0.0, near_age=near_age)
+        guard = RevisitPenalty(1, 3.0, near=NearVisits(near_rows, 3.0, near_age))
         idx, pose, rows = torch.tensor([0]), [0, 0], []
         for _ in range(24):
             logits = torch.tensor([[0.0, -9.0, -9.0, -9.0, -9.0]])

@@ -18,13 +18,13 @@ move the dead-reckoned pose, and the cell it aimed at gains a visit, so pressing
 appeal like a loop does. (A move in a textureless region can leave a small view unchanged too; it is then
 taken for a blocked one, so the dead reckoning is approximate there, where the view cannot tell poses apart.)
 
-**Near visits** (``near_rows > 0``): a search that pans back over the yaw it has seen, one row higher or lower each
-time, visits new cells on every pass, so exact-cell counts never stop it; a learned agent drawn to a region that looks
-like its target does this for thousands of steps. With ``near_rows = r``, a move also pays ``near_penalty`` per visit of
+**Near visits** (:class:`NearVisits`, ``rows > 0``): a search that pans back over the yaw it has seen, one row higher or
+lower each time, visits new cells on every pass, so exact-cell counts never stop it; a learned agent drawn to a region
+that looks like its target does this for thousands of steps. With ``rows = r``, a move also pays ``penalty`` per visit of
 the most visited cell near its destination: for ``LEFT`` / ``RIGHT`` the cells of the destination's column within
 ``r`` rows of it, for ``UP`` / ``DOWN`` those of its column 1 to ``r`` rows beyond it in the move's direction. Only
-visits at least ``near_age`` steps old count (1: every earlier visit; a larger age leaves recent ones free, such as
-the staircase of pitch and yaw moves onto a target just passed). ``near_penalty`` below ``penalty`` keeps it a nudge:
+visits at least ``age`` steps old count (1: every earlier visit; a larger age leaves recent ones free, such as
+the staircase of pitch and yaw moves onto a target just passed). A penalty below the memory's own keeps it a nudge:
 going back over ground a few rows off the old path costs less than an exact revisit, and a move the policy prefers by
 a wide margin (its last moves onto a target it sees) is still taken.
 
@@ -78,6 +78,11 @@ class NearVisits:
     penalty: float = 0.0
     age: int = 1
 
+    def __post_init__(self) -> None:
+        if int(self.rows) < 0 or (int(self.rows) > 0 and not float(self.penalty) > 0) or int(self.age) < 1:
+            raise ValueError(f"near visits: need rows >= 0, penalty > 0 logit units when rows > 0, age >= 1 step; "
+                             f"got rows={self.rows}, penalty={self.penalty}, age={self.age}")
+
     @classmethod
     def of(cls, agent: Any) -> "NearVisits":
         """The settings of a learned agent's typed config (``revisit_near_rows``, ``_penalty``, ``_age``)."""
@@ -99,8 +104,7 @@ def make_revisit_penalty(
         raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
     if penalty == 0:
         return None
-    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride), near_rows=near.rows,
-                          near_penalty=near.penalty, near_age=near.age)
+    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride), near=near)
 
 #: (pitch, yaw) grid steps of UP, DOWN, LEFT, RIGHT (STOP does not move)
 _MOVES = ((1, 0), (-1, 0), (0, -1), (0, 1))
@@ -118,21 +122,16 @@ class RevisitPenalty:
             (180 degrees covers any start and target).
         row_stride: row search stride in steps (0: off; see the module docstring).
         row_cover: share of a full turn of yaw cells seen near the current row that ends it (0 < x <= 1).
-        near_rows: rows (steps) of the near visits a move pays for (0: off; see the module docstring, "Near visits").
-        near_penalty: logit units per near visit (``> 0`` when ``near_rows > 0``).
-        near_age: steps since a near cell's last visit before that visit counts (``>= 1``).
+        near: the near visits a move also pays for (:class:`NearVisits`; the default: off; see the module docstring).
     """
 
     def __init__(
         self, num_envs: int, penalty: float, device: str | torch.device = "cpu", step_deg: int = 1,
         max_pitch_steps: int | None = None, row_stride: int = 0, row_cover: float = 0.9,
-        near_rows: int = 0, near_penalty: float = 0.0, near_age: int = 1,
+        near: NearVisits = NearVisits(),
     ) -> None:
         if not penalty > 0:
             raise ValueError(f"revisit penalty must be > 0 logit units per visit, got {penalty}")
-        if int(near_rows) < 0 or (int(near_rows) > 0 and not float(near_penalty) > 0) or int(near_age) < 1:
-            raise ValueError(f"near visits: need near_rows >= 0 rows, near_penalty > 0 logit units when near_rows > 0, "
-                             f"near_age >= 1 step; got {near_rows}, {near_penalty}, {near_age}")
         if int(row_stride) < 0 or not 0.0 < float(row_cover) <= 1.0:
             raise ValueError(f"row search: need row_stride >= 0 steps and 0 < row_cover <= 1, got {row_stride}, {row_cover}")
         if int(step_deg) < 1 or 360 % int(step_deg):
@@ -151,9 +150,10 @@ class RevisitPenalty:
         self.last_move = torch.full((n,), -1, dtype=torch.long, device=self.device)  # -1: none pending
         self.last_view: torch.Tensor | None = None
         self._moves = torch.tensor(_MOVES, dtype=torch.long, device=self.device)  # (4, 2)
-        # near visits: per move, the row offsets of its near cells from its destination, (4, 2 * near_rows)
-        r = self.near_rows = int(near_rows)
-        self.near_penalty, self.near_age = float(near_penalty), int(near_age)
+        # near visits: per move, the row offsets of its near cells from its destination, (4, 2 * rows) (a pitch move's
+        # `rows` cells beyond it, listed twice to fill the width; amax reads them once)
+        self.near = near
+        r = self.near_rows = int(near.rows)
         beyond, side = list(range(1, r + 1)), [k for k in range(-r, r + 1) if k]
         self._near_rows = torch.tensor([beyond + beyond, [-k for k in beyond] * 2, side, side],
                                        dtype=torch.long, device=self.device)
@@ -189,7 +189,7 @@ class RevisitPenalty:
         ids = env_ids.to(self.device)
         rows = self.pitch[ids] + self.max_pitch
         self.visits[ids, rows] = torch.clamp(self.visits[ids, rows], min=1)
-        if self.near_rows:  # the turn it did not make lies in the past: older than any near_age
+        if self.near_rows:  # the turn it did not make lies in the past: older than any age
             self.last_visit[ids, rows] = -(2 ** 30)
         self._recount(ids)
 
@@ -256,18 +256,18 @@ class RevisitPenalty:
 
     def move_penalties(self, idx: torch.Tensor) -> torch.Tensor:
         """``(K, 4)`` float32: the logit units :meth:`penalise` subtracts from UP, DOWN, LEFT, RIGHT of slots ``idx``
-        (``penalty x`` earlier visits of each move's destination, plus ``near_penalty x`` the visits of its most
+        (``penalty x`` earlier visits of each move's destination, plus ``near.penalty x`` the visits of its most
         visited near cell, module docstring "Near visits"). Call it after :meth:`arrive`."""
         idx = idx.to(self.device)
         p, y = self._destinations(idx)  # (K, 4) each
         out = self.penalty * self.visits[idx[:, None], p, y].to(torch.float32)
         if self.near_rows:
-            rows = p[:, :, None] + self._near_rows[None]  # (K, 4, 2 * near_rows)
+            rows = p[:, :, None] + self._near_rows[None]  # (K, 4, 2 * near.rows)
             inside = (rows >= 0) & (rows < self.visits.shape[1])
             cells = (idx[:, None, None], rows.clamp(0, self.visits.shape[1] - 1), y[:, :, None])
-            old = self.clock[idx, None, None] - self.last_visit[cells] >= self.near_age
+            old = self.clock[idx, None, None] - self.last_visit[cells] >= self.near.age
             near = torch.where(old & inside, self.visits[cells], 0).amax(dim=-1)
-            out = out + self.near_penalty * near.to(torch.float32)
+            out = out + self.near.penalty * near.to(torch.float32)
         return out
 
     def memory_features(self, idx: torch.Tensor, band: int) -> torch.Tensor:
@@ -391,6 +391,11 @@ class RevisitPenalty:
             self.last_blocked.copy_(row[3].bool())
         last = state.get("last_view")
         self.last_view = None if last is None else last.to(self.device).clone()
-        if state.get("last_visit") is not None and tuple(state["last_visit"].shape) == tuple(self.last_visit.shape):
-            self.last_visit.copy_(state["last_visit"])
+        if self.near_rows:  # the ages of the restored visits: a state saved without near visits has none
+            saved = state.get("last_visit")
+            if saved is None or tuple(saved.shape) != tuple(self.last_visit.shape):
+                raise ValueError(f"revisit state was saved without near visits (last-visit steps of shape "
+                                 f"{None if saved is None else tuple(saved.shape)}); this memory counts them "
+                                 f"({self.near}): resume with the near-visit settings it was saved with")
+            self.last_visit.copy_(saved)
             self.clock.copy_(state["clock"])
