@@ -280,6 +280,14 @@ class PPOAgentConfig:
     findview_baselines/agents/stop_refine.py."""
     refine_moves: int = 4
     """Most refinement moves per episode (with ``refine_stop``)."""
+    refine_model: Optional[str] = None
+    """With ``refine_stop``: a learned stop-offset net (a file of tools/train_stop_offsets.py, e.g.
+    pretrained/stop_offsets_fov90_256.pth) decides the refinement's moves instead of the measured residual: it
+    learned the offsets corruptions put between a target's content and its pose (glass blur, motion blur). Made
+    for one view size and FoV (its file says which). null = the phase-correlation residual. See
+    findview_baselines/agents/stop_offsets.py."""
+    refine_min_stay: float = 0.3
+    """With ``refine_model``: the net's probability that the view is on the target below which the stop moves."""
     stop_prob: Optional[float] = None
     """At validation / evaluation: STOP whenever the policy gives STOP at least this probability, even when a move
     has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
@@ -329,6 +337,9 @@ class PPOAgentConfig:
         check(self.revisit_near_penalty > 0, "agent.revisit_near_penalty", self.revisit_near_penalty, "a positive number of logit units")
         check(self.revisit_near_age >= 1, "agent.revisit_near_age", self.revisit_near_age, "a number of steps >= 1")
         check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
+        check(self.refine_model is None or self.refine_stop, "agent.refine_model", self.refine_model,
+              "null, or a stop-offset file with agent.refine_stop=true")
+        check(0 < self.refine_min_stay <= 1, "agent.refine_min_stay", self.refine_min_stay, "a probability in (0, 1]")
         check(self.stop_prob is None or 0 < self.stop_prob <= 1, "agent.stop_prob", self.stop_prob,
               "null or a probability in (0, 1]")
         check(self.stop_min_prob is None or 0 < self.stop_min_prob <= 1, "agent.stop_min_prob", self.stop_min_prob,

@@ -260,7 +260,7 @@ class PPOAgent(Agent):
         return cls.from_checkpoint(
             checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
-            refiner=StopRefiner(num_envs, cfg.fov, cfg.refine_moves) if cfg.refine_stop else None,
+            refiner=_refiner(cfg, num_envs, width) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
             stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg),
         )
@@ -390,6 +390,17 @@ class PPOAgent(Agent):
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t
+
+
+def _refiner(cfg: "PPOAgentConfig", num_envs: int, width: int | None) -> StopRefiner:
+    """The stop refinement of the ``agent`` section: by the measured residual, or by ``agent.refine_model``'s net
+    (checked against the views' FoV and ``width``, pixels)."""
+    offsets = None
+    if cfg.refine_model is not None:
+        from findview_baselines.agents.stop_offsets import load_stop_offsets
+
+        offsets = load_stop_offsets(cfg.refine_model, fov=cfg.fov, size=width)
+    return StopRefiner(num_envs, cfg.fov, cfg.refine_moves, offsets=offsets, min_stay=cfg.refine_min_stay)
 
 
 def _register() -> None:

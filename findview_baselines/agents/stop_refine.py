@@ -12,6 +12,14 @@ the correlation peak is clear, ``>= min_peak``: a stop far from the target gives
 as it is), the slot moves one degree towards the target instead, and keeps refining (without the policy)
 until the residual is below ``min_shift`` or ``max_moves`` moves were made; then it stops.
 
+With a learned stop-offset net (``offsets``, :mod:`findview_baselines.agents.stop_offsets`) the net decides
+instead of the measured residual: the slot moves one degree towards the target while the net's probability that
+the view is on the target is below ``min_stay`` (at most ``max_moves`` moves). No peak threshold applies: under
+glass blur the peak of a view on its target is about 0.05, below ``min_peak``, which is why the residual never
+refines those stops. It learned the offsets that
+corruptions such as glass blur put between a target's content and its pose, which the measured shift reads as a
+rotation.
+
 Batched over environments, on any device (``torch.fft``).
 """
 
@@ -21,7 +29,12 @@ import math
 
 import torch
 
+from typing import TYPE_CHECKING
+
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
+
+if TYPE_CHECKING:
+    from findview_baselines.agents.stop_offsets import StopOffsetNet
 
 __all__ = ["residual_rotation", "phase_spectrum", "rotation_between", "StopRefiner"]
 
@@ -116,15 +129,21 @@ class StopRefiner:
         max_moves: refinement moves allowed per episode before the slot stops where it is.
         min_shift: residual (degrees, per axis) below which the slot stops.
         min_peak: correlation peak needed to trust the measured residual.
+        offsets: a learned stop-offset net that decides the moves instead of the residual (see the module
+            docstring); ``None``: the residual decides.
+        min_stay: with ``offsets``, the net's probability of "on the target" below which the slot moves.
     """
 
     def __init__(self, num_envs: int, fov: float, max_moves: int = 4, min_shift: float = 0.5,
-                 min_peak: float = 0.15) -> None:
+                 min_peak: float = 0.15, offsets: "StopOffsetNet | None" = None, min_stay: float = 0.3) -> None:
         if max_moves < 1:
             raise ValueError(f"max_moves must be >= 1, got {max_moves}")
         if not 0 < fov < 180:
             raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
+        if not 0 < min_stay <= 1:
+            raise ValueError(f"min_stay must be a probability in (0, 1], got {min_stay}")
         self.fov, self.max_moves, self.min_shift, self.min_peak = float(fov), int(max_moves), float(min_shift), float(min_peak)
+        self.offsets, self.min_stay = offsets, float(min_stay)
         self.refining = torch.zeros(num_envs, dtype=torch.bool)
         self.moves = torch.zeros(num_envs, dtype=torch.long)
 
@@ -137,14 +156,21 @@ class StopRefiner:
         target, or STOP. ``view`` / ``target``: those slots' observations."""
         ids = env_ids.cpu()
         dyaw, dpitch, peak = (t.cpu() for t in residual_rotation(view, target, self.fov))
-        trusted = (peak >= self.min_peak) & (self.moves[ids] < self.max_moves)
+        if self.offsets is None:
+            trusted = (peak >= self.min_peak) & (self.moves[ids] < self.max_moves)
+            off = torch.maximum(dyaw.abs(), dpitch.abs()) >= self.min_shift
+        else:  # the net's offsets of the view from the target, degrees: turn the other way (no peak needed)
+            trusted = self.moves[ids] < self.max_moves
+            net = self.offsets.to(view.device)
+            view_pitch, view_yaw, stay = (t.cpu() for t in net.offsets(view, target))
+            dyaw, dpitch = -view_yaw.float(), -view_pitch.float()
+            off = (stay < self.min_stay) & ((dyaw != 0) | (dpitch != 0))
         yaw_first = dyaw.abs() >= dpitch.abs()
         move = torch.where(
             yaw_first,
             torch.where(dyaw > 0, torch.tensor(RIGHT), torch.tensor(LEFT)),
             torch.where(dpitch > 0, torch.tensor(UP), torch.tensor(DOWN)),
         )
-        off = torch.maximum(dyaw.abs(), dpitch.abs()) >= self.min_shift
         go = trusted & off
         actions = torch.where(go, move, torch.tensor(STOP))
         self.refining[ids] = go

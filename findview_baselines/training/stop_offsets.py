@@ -1,0 +1,161 @@
+"""Training of a stop-offset net (:mod:`findview_baselines.agents.stop_offsets`) on the simulator's exact geometry.
+
+A pair is a target rendered at a random pose of a panorama (pitch -50..50, yaw -179..180 degrees), corrupted as the
+robust agents train (each corruption equally likely, severity 1-5; a ``clean_fraction`` left clean), and a view
+rendered ``(dpitch, dyaw)`` degrees from it: each axis 0 with probability 0.4, else +-1, +-2 or +-3 equally. The
+label is the offset per axis, clipped to -2..2. Only the features of a pair are kept (:func:`pair_features`), so
+memory grows by about 3 KB a pair.
+
+:func:`sample_pairs` makes them, :func:`fit` trains the MLP (Adam, cosine learning rate, cross-entropy of both axes)
+and :func:`accuracy` reports what the refinement needs: how often a view on its target is left alone, and how often
+a view one degree off is sent the right way. ``tools/train_stop_offsets.py`` is the command.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from findview.corruptions import NAMES, corrupt
+from findview.sim.equi2pers import equi2pers
+from findview_baselines.agents.stop_offsets import FEATURES, OFFSET_CLASSES, StopOffsetNet, pair_features
+
+__all__ = ["Pairs", "sample_pairs", "fit", "accuracy"]
+
+_CHUNK = 500
+_MID = OFFSET_CLASSES // 2
+
+
+@dataclass
+class Pairs:
+    """Features ``(N, FEATURES)`` float32 of view / target pairs, their offsets ``dpitch`` / ``dyaw`` ``(N,)`` long
+    (degrees, the view's from the target's, before clipping), ``corruption`` ``(N,)`` long (index in
+    :data:`findview.corruptions.NAMES`, -1 clean) and ``severity`` ``(N,)`` long (1-5)."""
+
+    features: torch.Tensor
+    dpitch: torch.Tensor
+    dyaw: torch.Tensor
+    corruption: torch.Tensor
+    severity: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.dpitch)
+
+    @staticmethod
+    def cat(parts: Sequence["Pairs"]) -> "Pairs":
+        return Pairs(*(torch.cat([getattr(p, k) for p in parts]) for k in
+                       ("features", "dpitch", "dyaw", "corruption", "severity")))
+
+
+def _axis_offsets(rng: np.random.Generator, n: int) -> np.ndarray:
+    magnitude = rng.integers(1, 4, n) * np.where(rng.random(n) < 0.5, -1, 1)
+    return np.where(rng.random(n) < 0.4, 0, magnitude)
+
+
+def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: int, seed: int,
+                 corruptions: Sequence[str] = NAMES, clean_fraction: float = 0.2, progress: bool = False) -> Pairs:
+    """``n`` pairs from ``panoramas`` (each ``(3, He, 2 He)`` uint8), views ``size x size`` pixels over ``fov``
+    degrees, targets corrupted by one of ``corruptions`` (or clean, ``clean_fraction``); reproducible from ``seed``."""
+    unknown = [c for c in corruptions if c not in NAMES]
+    if unknown or not corruptions:
+        raise ValueError(f"corruptions {list(corruptions)}: expected names from {', '.join(NAMES)}")
+    if not panoramas:
+        raise ValueError("sample_pairs: no panoramas")
+    rng = np.random.default_rng(seed)
+    gen = torch.Generator().manual_seed(seed)
+    pitch = rng.integers(-50, 51, n)
+    yaw = rng.integers(-179, 181, n)
+    dpitch, dyaw = _axis_offsets(rng, n), _axis_offsets(rng, n)
+    pano = rng.integers(0, len(panoramas), n)
+    names = np.array([NAMES.index(c) for c in corruptions])
+    corruption = np.where(rng.random(n) < clean_fraction, -1, names[rng.integers(0, len(names), n)])
+    severity = rng.integers(1, 6, n)
+    features = []
+    from tqdm import tqdm
+
+    with tqdm(total=n, unit="pair", disable=not progress, dynamic_ncols=True) as bar:
+        for a in range(0, n, _CHUNK):
+            b = min(n, a + _CHUNK)
+            views = torch.empty(b - a, 3, size, size, dtype=torch.uint8)
+            targets = torch.empty_like(views)
+            for i in range(a, b):
+                equi = panoramas[pano[i]][None]
+                targets[i - a] = equi2pers(equi, torch.tensor([float(pitch[i])]), torch.tensor([float(yaw[i])]), fov, size, size)[0]
+                views[i - a] = equi2pers(equi, torch.tensor([float(pitch[i] + dpitch[i])]),
+                                         torch.tensor([float(yaw[i] + dyaw[i])]), fov, size, size)[0]
+            for c in np.unique(corruption[a:b]):
+                for s in range(1, 6):
+                    rows = np.flatnonzero((corruption[a:b] == c) & (severity[a:b] == s))
+                    if c >= 0 and len(rows):
+                        targets[rows] = corrupt(targets[rows], NAMES[c], s, generator=gen)
+            features.append(pair_features(views, targets, fov))
+            bar.update(b - a)
+    as_long = lambda x: torch.as_tensor(x, dtype=torch.long)  # noqa: E731
+    return Pairs(torch.cat(features), as_long(dpitch), as_long(dyaw), as_long(corruption), as_long(severity))
+
+
+def _labels(offsets: torch.Tensor) -> torch.Tensor:
+    return offsets.clamp(-_MID, _MID) + _MID
+
+
+def fit(train: Pairs, fov: float, size: int, epochs: int = 30, seed: int = 0, hidden: int = 256,
+        batch: int = 256, lr: float = 1e-3) -> StopOffsetNet:
+    """Train a :class:`StopOffsetNet` on ``train`` (its normaliser from ``train``'s features); returns it in eval
+    mode."""
+    if len(train) == 0 or train.features.shape[1] != FEATURES:
+        raise ValueError(f"fit: expected pairs with {FEATURES} features, got {tuple(train.features.shape)}")
+    torch.manual_seed(seed)
+    net = StopOffsetNet(fov, size, hidden)
+    net.mean.copy_(train.features.mean(0))
+    net.std.copy_(train.features.std(0).clamp_min(1e-4))
+    opt = torch.optim.Adam(net.mlp.parameters(), lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+    y_pitch, y_yaw = _labels(train.dpitch), _labels(train.dyaw)
+    shuffle = torch.Generator().manual_seed(seed)
+    net.train()
+    for _ in range(epochs):
+        order = torch.randperm(len(train), generator=shuffle)
+        for i in range(0, len(order), batch):
+            rows = order[i:i + batch]
+            pitch_logits, yaw_logits = net(train.features[rows])
+            loss = F.cross_entropy(pitch_logits, y_pitch[rows]) + F.cross_entropy(yaw_logits, y_yaw[rows])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        sched.step()
+    return net.eval()
+
+
+@torch.no_grad()
+def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float) -> dict[str, dict[str, float]]:
+    """Per corruption (``clean`` and each name in ``pairs``): ``stay``, the share of views on their target the
+    refinement leaves alone, and ``one_off``, the share of views one degree off (on one axis or both) whose first
+    move goes towards the target, with the refinement's rule (move while P(on target) < ``min_stay``, on the axis
+    with the larger predicted offset, yaw on ties)."""
+    pitch_logits, yaw_logits = net(pairs.features)
+    p_pitch, p_yaw = pitch_logits.softmax(1), yaw_logits.softmax(1)
+    stay = p_pitch[:, _MID] * p_yaw[:, _MID] >= min_stay
+    pred_pitch, pred_yaw = p_pitch.argmax(1) - _MID, p_yaw.argmax(1) - _MID
+    stay = stay | ((pred_pitch == 0) & (pred_yaw == 0))
+    yaw_first = pred_yaw.abs() >= pred_pitch.abs()
+    right_way = torch.where(yaw_first, (pred_yaw != 0) & (pred_yaw.sign() == pairs.dyaw.sign()),
+                            (pred_pitch != 0) & (pred_pitch.sign() == pairs.dpitch.sign()))
+    on = (pairs.dpitch == 0) & (pairs.dyaw == 0)
+    one_off = ~on & (pairs.dpitch.abs() <= 1) & (pairs.dyaw.abs() <= 1)
+    out = {}
+    for c in [-1, *range(len(NAMES))]:
+        rows = pairs.corruption == c
+        if not rows.any():
+            continue
+        name = "clean" if c < 0 else NAMES[c]
+        a, b = rows & on, rows & one_off
+        out[name] = {
+            "stay": float(stay[a].float().mean()) if a.any() else float("nan"),
+            "one_off": float((~stay & right_way)[b].float().mean()) if b.any() else float("nan"),
+            "pairs": int(rows.sum()),
+        }
+    return out

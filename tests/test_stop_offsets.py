@@ -1,0 +1,219 @@
+"""The learned stop check (findview_baselines/agents/stop_offsets.py, findview_baselines/training/stop_offsets.py,
+tools/train_stop_offsets.py): the correlation volume peaks at a hand-made shift, a net trained on a few hundred
+rendered pairs tells a view on its target from one a degree off and which way, the refinement follows a net's
+answer within its move budget, and files and settings are checked."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pytest
+import torch
+
+from findview.dataset import generate_panorama
+from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
+from findview_baselines.agents.stop_offsets import (
+    FEATURES,
+    SHIFTS,
+    StopOffsetNet,
+    StopOffsetsError,
+    load_stop_offsets,
+    ncc_volume,
+    pair_features,
+    save_stop_offsets,
+)
+from findview_baselines.agents.stop_refine import StopRefiner
+from findview_baselines.training.stop_offsets import accuracy, fit, sample_pairs
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZE, FOV = 160, 90.0
+
+
+def _smooth_noise(seed: int, h: int, w: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(1, 1, h // 4, w // 4, generator=g)
+    return torch.nn.functional.interpolate(x, size=(h, w), mode="bicubic", align_corners=False)[0, 0]
+
+
+def test_ncc_volume_peaks_at_the_shift_between_the_images() -> None:
+    """target(y, x) = view(y - 3, x + 2): the view's square moved 3 pixels up and 2 right matches the target's
+    square exactly, so the volume is 1 at [SHIFTS - 3, SHIFTS + 2] and below 1 elsewhere."""
+    view = _smooth_noise(0, 200, 200)
+    target = torch.roll(view, shifts=(3, -2), dims=(0, 1))
+    vol = ncc_volume(view[None], target[None])[0]
+    assert vol.shape == (2 * SHIFTS + 1, 2 * SHIFTS + 1)
+    assert vol[SHIFTS - 3, SHIFTS + 2].item() == pytest.approx(1.0, abs=1e-4)
+    flat = vol.flatten().clone()
+    flat[(SHIFTS - 3) * (2 * SHIFTS + 1) + SHIFTS + 2] = -1
+    assert flat.max().item() < 0.99
+    with pytest.raises(ValueError, match="smaller than"):
+        ncc_volume(view[None, :100, :100], target[None, :100, :100])
+
+
+def test_pair_features_of_identical_images() -> None:
+    """Identical view and target: each of the three volumes is 1 at zero shift, the log energy ratios are 0, the
+    measured residual is about 0 with a peak near 1."""
+    img = (torch.stack([_smooth_noise(s, SIZE, SIZE) for s in (1, 2, 3)]) * 255).to(torch.uint8)[None]
+    f = pair_features(img, img, FOV)[0]
+    assert f.shape == (FEATURES,) and torch.isfinite(f).all()
+    n = (2 * SHIFTS + 1) ** 2
+    centre = SHIFTS * (2 * SHIFTS + 1) + SHIFTS
+    for band in range(3):
+        assert f[band * n + centre].item() == pytest.approx(1.0, abs=1e-4)
+    assert f[3 * n + 8:3 * n + 16].abs().max().item() < 1e-4
+    assert f[-3:-1].abs().max().item() < 0.05 and f[-1].item() > 0.9
+
+
+@pytest.fixture(scope="module")
+def panoramas() -> list[torch.Tensor]:
+    return [torch.from_numpy(generate_panorama(seed, kind, 1024)).permute(2, 0, 1).contiguous()
+            for seed, kind in ((5, "room"), (6, "village"), (7, "room"))]
+
+
+@pytest.fixture(scope="module")
+def trained(panoramas) -> tuple:
+    """A net trained on 600 clean pairs of two panoramas, and 300 val pairs of the third."""
+    torch.manual_seed(0)
+    train = sample_pairs(panoramas[:2], 600, FOV, SIZE, seed=1, clean_fraction=1.0)
+    val = sample_pairs(panoramas[2:], 300, FOV, SIZE, seed=2, clean_fraction=1.0)
+    return fit(train, FOV, SIZE, epochs=15, seed=0), val
+
+
+def test_sampled_pairs_have_the_documented_offsets(panoramas) -> None:
+    pairs = sample_pairs(panoramas[:1], 200, FOV, SIZE, seed=3, corruptions=("fog", "glass_blur"))
+    assert pairs.features.shape == (200, FEATURES)
+    assert set(pairs.dpitch.tolist()) <= {-3, -2, -1, 0, 1, 2, 3} and set(pairs.dyaw.tolist()) <= {-3, -2, -1, 0, 1, 2, 3}
+    assert 0.25 < (pairs.dpitch == 0).float().mean().item() < 0.55
+    assert set(pairs.corruption.tolist()) <= {-1, 14, 2}  # clean, fog, glass_blur
+    again = sample_pairs(panoramas[:1], 200, FOV, SIZE, seed=3, corruptions=("fog", "glass_blur"))
+    assert torch.equal(again.features, pairs.features)
+    with pytest.raises(ValueError, match="expected names"):
+        sample_pairs(panoramas[:1], 10, FOV, SIZE, seed=3, corruptions=("haze",))
+
+
+def test_a_net_trained_on_rendered_pairs_tells_on_target_from_one_degree_off(trained) -> None:
+    """On a panorama it never saw: at least 90% of views on their target are left alone and at least 80% of views
+    one degree off are first moved towards it (clean targets; a content matcher reads these shifts exactly, so
+    the margins hold on any seed and thread count)."""
+    net, val = trained
+    report = accuracy(net, val, min_stay=0.3)["clean"]
+    assert report["stay"] >= 0.9, report
+    assert report["one_off"] >= 0.8, report
+
+
+def _fixed_net(pitch_class: int, yaw_class: int) -> StopOffsetNet:
+    """A net whose answer is always (pitch_class - 2, yaw_class - 2) degrees, surely."""
+    net = StopOffsetNet(FOV, SIZE, hidden=8)
+    last = net.mlp[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.fill_(-20.0)
+        last.bias[pitch_class] = 20.0
+        last.bias[5 + yaw_class] = 20.0
+    return net.eval()
+
+
+@pytest.mark.parametrize(
+    "pitch_class, yaw_class, first",
+    [(2, 3, LEFT), (2, 1, RIGHT), (3, 2, DOWN), (1, 2, UP), (1, 4, LEFT), (2, 2, STOP)],
+)
+def test_refiner_follows_the_net(pitch_class: int, yaw_class: int, first: int) -> None:
+    """The net's offset is the view's from the target: a view 1 degree right of it (yaw class 3) turns LEFT, one
+    above it (pitch class 3) moves DOWN; the larger offset goes first; "no offset" stops. After ``max_moves``
+    moves the slot stops whatever the net says."""
+    img = (torch.rand(2, 3, SIZE, SIZE, generator=torch.Generator().manual_seed(0)) * 255).to(torch.uint8)
+    refiner = StopRefiner(2, FOV, max_moves=2, offsets=_fixed_net(pitch_class, yaw_class))
+    ids = torch.tensor([0, 1])
+    actions = [refiner.decide(ids, img, img).tolist() for _ in range(3)]
+    assert actions[0] == [first, first]
+    expected_last = STOP
+    assert actions[2] == [expected_last, expected_last]
+    assert refiner.refining.tolist() == [False, False]
+
+
+def test_files_round_trip_and_bad_files_are_named(trained, tmp_path) -> None:
+    net, val = trained
+    path = save_stop_offsets(tmp_path / "net.pth", net, {"note": "test"})
+    state = torch.load(path, weights_only=True)
+    assert state["meta"] == {"note": "test"} and state["fov"] == FOV and state["size"] == SIZE
+    again = load_stop_offsets(path, fov=FOV, size=SIZE)
+    assert torch.equal(again(val.features[:5])[0], net(val.features[:5])[0])
+    with pytest.raises(StopOffsetsError, match="FoV 90.*FoV 60"):
+        load_stop_offsets(path, fov=60.0)
+    with pytest.raises(StopOffsetsError, match="160x160 views.*256"):
+        load_stop_offsets(path, size=256)
+    junk = tmp_path / "junk.pth"
+    torch.save({"format": "findview-ppo"}, junk)
+    with pytest.raises(StopOffsetsError, match="junk.pth: not a stop-offset net"):
+        load_stop_offsets(junk)
+    with pytest.raises(StopOffsetsError, match="missing.pth: stop-offset net not found"):
+        load_stop_offsets(tmp_path / "missing.pth")
+    with pytest.raises(StopOffsetsError, match="160x160 views got"):
+        again.offsets(torch.zeros(1, 3, 64, 64, dtype=torch.uint8), torch.zeros(1, 3, 64, 64, dtype=torch.uint8))
+
+
+def test_config_checks_the_refine_model_settings() -> None:
+    from findview_baselines.config import PPOAgentConfig
+
+    with pytest.raises(ValueError, match="agent.refine_model.*refine_stop=true"):
+        PPOAgentConfig(refine_model="x.pth")
+    with pytest.raises(ValueError, match="agent.refine_min_stay"):
+        PPOAgentConfig(refine_stop=True, refine_min_stay=0.0)
+    with pytest.raises(ValueError, match="min_stay"):
+        StopRefiner(1, FOV, min_stay=1.5)
+
+
+def test_agent_refiner_loads_the_net_for_its_views(trained, tmp_path) -> None:
+    from findview_baselines.agents.ppo_agent import _refiner
+    from findview_baselines.config import PPOAgentConfig
+
+    net, _ = trained
+    path = save_stop_offsets(tmp_path / "net.pth", net, {})
+    cfg = PPOAgentConfig(refine_stop=True, refine_model=str(path), refine_min_stay=0.4, fov=FOV)
+    refiner = _refiner(cfg, 3, SIZE)
+    assert refiner.offsets is not None and refiner.min_stay == 0.4
+    with pytest.raises(StopOffsetsError, match="made for 160x160 views"):
+        _refiner(cfg, 3, 256)
+    assert _refiner(PPOAgentConfig(refine_stop=True), 3, SIZE).offsets is None
+
+
+def test_tool_refuses_bad_input(tmp_path) -> None:
+    tool = [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py")]
+    splits = tmp_path / "splits.json"
+    splits.write_text(json.dumps({"splits": {"train": [], "val": []}}))
+    out = tmp_path / "o.pth"
+    run = subprocess.run(tool + ["--splits", str(splits), "--root", str(tmp_path), "--out", str(out)],
+                         capture_output=True, text=True)
+    assert run.returncode == 2 and "'train' split is empty" in run.stderr and not out.exists()
+    run = subprocess.run(tool + ["--splits", str(splits), "--root", str(tmp_path), "--out", str(out),
+                                 "--blur-corruptions", "haze"], capture_output=True, text=True)
+    assert run.returncode == 2 and "haze" in run.stderr
+    out.write_bytes(b"x")
+    run = subprocess.run(tool + ["--splits", str(splits), "--root", str(tmp_path), "--out", str(out)],
+                         capture_output=True, text=True)
+    assert run.returncode == 2 and "--overwrite" in run.stderr and out.read_bytes() == b"x"
+
+
+def test_tool_trains_a_file_the_agent_loads(panoramas, tmp_path) -> None:
+    """End to end on two tiny panorama folders: the tool writes a file with its settings and val report."""
+    root = tmp_path / "panos"
+    root.mkdir()
+    entries = []
+    for i, pano in enumerate(panoramas):
+        cv2.imwrite(str(root / f"p{i}.png"), cv2.cvtColor(pano.permute(1, 2, 0).numpy(), cv2.COLOR_RGB2BGR))
+        entries.append({"image": f"p{i}.png", "label": "x"})
+    splits = tmp_path / "splits.json"
+    splits.write_text(json.dumps({"splits": {"train": entries[:2], "val": entries[2:]}}))
+    out = tmp_path / "net.pth"
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py"), "--splits", str(splits), "--root", str(root),
+         "--out", str(out), "--size", str(SIZE), "--pairs", "60", "--blur-pairs", "20", "--val-pairs", "40",
+         "--epochs", "1"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+    state = torch.load(out, weights_only=True)
+    assert state["meta"]["pairs"] == 60 and "clean" in state["meta"]["val"]
+    assert load_stop_offsets(out, fov=FOV, size=SIZE).size == SIZE

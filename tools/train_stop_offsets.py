@@ -1,0 +1,102 @@
+#!/usr/bin/env python
+"""Train a stop-offset net: the learned check of a learned agent's stop under corruption (``agent.refine_model``).
+
+Usage::
+
+    python tools/train_stop_offsets.py --splits data/sun360_mini_indoor/splits.json --root <sun360_mini> \\
+        --out pretrained/stop_offsets_fov90_256.pth
+
+Pairs of a target (corrupted: every corruption, severity 1-5, 20% clean) and a view a few degrees from it are
+rendered from the **train** panoramas of ``--splits`` (``--pairs`` of them, plus ``--blur-pairs`` with the
+corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
+offset per axis (findview_baselines/agents/stop_offsets.py). ``--val-pairs`` pairs from the **val** panoramas
+report how often a view on its target is left alone and how often a view one degree off is sent the right way,
+per corruption (the ``stay`` / ``one_off`` of findview_baselines/training/stop_offsets.py, ``accuracy``); they
+are stored in the file with the command's settings. The file is written atomically; an existing ``--out`` is
+replaced only with ``--overwrite``. Bad input prints one line and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from findview.corruptions import NAMES  # noqa: E402
+from findview.imageio import PanoramaError, load_panorama  # noqa: E402
+from findview_baselines.agents.stop_offsets import save_stop_offsets  # noqa: E402
+from findview_baselines.training.stop_offsets import Pairs, accuracy, fit, sample_pairs  # noqa: E402
+
+
+def _panoramas(splits: Path, root: Path, split: str) -> list[torch.Tensor]:
+    try:
+        entries = json.loads(splits.read_text())["splits"][split]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{splits}: expected a splits.json of tools/make_dataset.py with a {split!r} split ({err})") from err
+    if not entries:
+        raise ValueError(f"{splits}: the {split!r} split is empty")
+    return [torch.from_numpy(load_panorama(root / e["image"])).permute(2, 0, 1).contiguous() for e in entries]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse, sample, train, report, write; returns the exit status (0, or 2 for bad input)."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--splits", required=True, help="splits.json of tools/make_dataset.py (train and val panoramas)")
+    p.add_argument("--root", required=True, help="the panorama folder the splits name their images under")
+    p.add_argument("--out", required=True, help="the .pth to write")
+    p.add_argument("--fov", type=float, default=90.0, help="field of view of the views, degrees (default 90)")
+    p.add_argument("--size", type=int, default=256, help="view side, pixels (default 256)")
+    p.add_argument("--pairs", type=int, default=24000, help="training pairs, every corruption (default 24000)")
+    p.add_argument("--blur-pairs", type=int, default=10000, help="more training pairs, --blur-corruptions only (default 10000)")
+    p.add_argument("--blur-corruptions", default="motion_blur,glass_blur", help="comma-separated corruption names")
+    p.add_argument("--val-pairs", type=int, default=3000, help="val pairs for the report (default 3000)")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--min-stay", type=float, default=0.3, help="the refinement's threshold the report uses (agent.refine_min_stay)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        print(f"train_stop_offsets: {out} exists; pass --overwrite to replace it", file=sys.stderr)
+        return 2
+    blur = [c for c in args.blur_corruptions.split(",") if c]
+    bad = [c for c in blur if c not in NAMES]
+    if bad or args.size < 142 or args.pairs < 1 or args.val_pairs < 1:
+        print(f"train_stop_offsets: expected corruption names from {', '.join(NAMES)} (got {bad}), --size >= 142 "
+              f"pixels, and positive --pairs / --val-pairs", file=sys.stderr)
+        return 2
+    torch.set_num_threads(args.threads)
+    start = time.time()
+    try:
+        train_panos = _panoramas(Path(args.splits), Path(args.root), "train")
+        val_panos = _panoramas(Path(args.splits), Path(args.root), "val")
+    except (ValueError, PanoramaError) as err:
+        print(f"train_stop_offsets: {err}", file=sys.stderr)
+        return 2
+    print(f"{len(train_panos)} train and {len(val_panos)} val panoramas; sampling pairs", flush=True)
+    parts = [sample_pairs(train_panos, args.pairs, args.fov, args.size, args.seed, progress=True)]
+    if args.blur_pairs and blur:
+        parts.append(sample_pairs(train_panos, args.blur_pairs, args.fov, args.size, args.seed + 1, blur, progress=True))
+    val = sample_pairs(val_panos, args.val_pairs, args.fov, args.size, args.seed + 2, progress=True)
+    net = fit(Pairs.cat(parts), args.fov, args.size, args.epochs, args.seed)
+    report = accuracy(net, val, args.min_stay)
+    print(f"{'val pairs':18s} {'stay':>6s} {'one_off':>8s}")
+    for name, r in report.items():
+        print(f"{name:18s} {r['stay']:6.3f} {r['one_off']:8.3f}")
+    meta = {"command": " ".join(sys.argv), "splits": str(args.splits), "pairs": args.pairs,
+            "blur_pairs": args.blur_pairs, "blur_corruptions": blur, "epochs": args.epochs, "seed": args.seed,
+            "min_stay": args.min_stay, "val": report, "seconds": round(time.time() - start, 1)}
+    save_stop_offsets(out, net, meta)
+    print(f"wrote {out} ({meta['seconds']} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
