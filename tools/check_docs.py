@@ -152,6 +152,7 @@ OVERRIDES: dict[str, str] = {
     "benchmarks/bench_load.py": "--rounds 1 --env-steps 2 --decisions 2 --ppo-size 64 --ppo-envs 2 --ppo-steps 2",
     "benchmarks/bench_distributed.py": "--updates 2 --envs 2 --rollout-steps 4 --hidden 32",
     "benchmarks/bench_corruptions.py": "--repeats 1 --batch 2 --size 64 --names fog",
+    "tools/train_stop_offsets.py": "--pairs 40 --blur-pairs 10 --val-pairs 20 --epochs 1",
     "benchmarks/robustness.py": "--T 30 --max-episodes 2 --corruptions fog --severities 3 --fovs 90 --no-clear --calibration-episodes 0 --jobs 2 --override dataset.width=256",
 }
 TIMEOUT_S = 300
