@@ -155,8 +155,8 @@ class StopRefiner:
         """Actions (len(env_ids),) for slots that want to stop or are refining: one degree towards the
         target, or STOP. ``view`` / ``target``: those slots' observations."""
         ids = env_ids.cpu()
-        dyaw, dpitch, peak = (t.cpu() for t in residual_rotation(view, target, self.fov))
         if self.offsets is None:
+            dyaw, dpitch, peak = (t.cpu() for t in residual_rotation(view, target, self.fov))
             trusted = (peak >= self.min_peak) & (self.moves[ids] < self.max_moves)
             off = torch.maximum(dyaw.abs(), dpitch.abs()) >= self.min_shift
         else:  # the net's offsets of the view from the target, degrees: turn the other way (no peak needed)

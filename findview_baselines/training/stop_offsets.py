@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+from tqdm import tqdm
 
 from findview.corruptions import NAMES, corrupt
 from findview.sim.equi2pers import equi2pers
@@ -75,8 +76,6 @@ def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: in
     corruption = np.where(rng.random(n) < clean_fraction, -1, names[rng.integers(0, len(names), n)])
     severity = rng.integers(1, 6, n)
     features = []
-    from tqdm import tqdm
-
     with tqdm(total=n, unit="pair", disable=not progress, dynamic_ncols=True) as bar:
         for a in range(0, n, _CHUNK):
             b = min(n, a + _CHUNK)
