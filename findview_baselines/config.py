@@ -273,8 +273,9 @@ class PPOAgentConfig:
     through a layer that starts at zero (``init_from`` an agent without it starts unchanged). direct / robust /
     phase variants only. Part of the checkpoint signature."""
     refine_stop: bool = False
-    """At validation / evaluation: check each stop of the policy by phase correlation of view and target, and when
-    the target is measured at least half a degree away move towards it (one degree per step, at most
+    """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
+    of the policy by phase correlation of view and target, and when the target is measured at least half a degree
+    away move towards it (one degree per step, at most
     ``refine_moves`` moves) before stopping. It measures on the views as rendered (on 256x256 views of a 64x64
     network: the full-size ones); its peak threshold was chosen on 64x64 views. See
     findview_baselines/agents/stop_refine.py."""
@@ -289,11 +290,11 @@ class PPOAgentConfig:
     refine_min_stay: float = 0.3
     """With ``refine_model``: the net's probability that the view is on the target below which the stop moves."""
     stop_prob: Optional[float] = None
-    """At validation / evaluation: STOP whenever the policy gives STOP at least this probability, even when a move
-    has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
+    """At evaluation (as ``refine_stop``): STOP whenever the policy gives STOP at least this probability, even when a
+    move has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
     stop_min_prob: Optional[float] = None
-    """At validation / evaluation: refuse a STOP the policy gives less than this probability; the slot takes its most
-    likely move instead (after the search memory's penalty), so an unsure stop on a look-alike view does not end the
+    """At evaluation (as ``refine_stop``): refuse a STOP the policy gives less than this probability; the slot takes
+    its most likely move instead (after the search memory's penalty), so an unsure stop on a look-alike view does not end the
     episode. Use it with ``stop_by``: a slot that finds nothing surer walks back to its most stop-like pose at the end.
     null = every STOP of the argmax (or the sample) stands. At most ``stop_prob``."""
     stop_by: int = 0
