@@ -184,7 +184,7 @@ def test_agent_refiner_loads_the_net_for_its_views(trained, tmp_path) -> None:
 def test_tool_refuses_bad_input(tmp_path) -> None:
     tool = [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py")]
     splits = tmp_path / "splits.json"
-    splits.write_text(json.dumps({"splits": {"train": [], "val": []}}))
+    splits.write_text(json.dumps({"root": str(tmp_path), "splits": {"train": [], "val": []}}))
     out = tmp_path / "o.pth"
     run = subprocess.run(tool + ["--splits", str(splits), "--root", str(tmp_path), "--out", str(out)],
                          capture_output=True, text=True)
@@ -207,7 +207,7 @@ def test_tool_trains_a_file_the_agent_loads(panoramas, tmp_path) -> None:
         cv2.imwrite(str(root / f"p{i}.png"), cv2.cvtColor(pano.permute(1, 2, 0).numpy(), cv2.COLOR_RGB2BGR))
         entries.append({"image": f"p{i}.png", "label": "x"})
     splits = tmp_path / "splits.json"
-    splits.write_text(json.dumps({"splits": {"train": entries[:2], "val": entries[2:]}}))
+    splits.write_text(json.dumps({"root": str(root), "splits": {"train": entries[:2], "val": entries[2:]}}))
     out = tmp_path / "net.pth"
     run = subprocess.run(
         [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py"), "--splits", str(splits), "--root", str(root),

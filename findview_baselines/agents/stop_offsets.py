@@ -32,7 +32,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from findview.utils import atomic_write
-from findview_baselines.agents.stop_refine import residual_rotation
+from findview_baselines.agents.stop_refine import gray, residual_rotation
 
 __all__ = [
     "SHIFTS",
@@ -60,7 +60,7 @@ FEATURES = _BANDS * (2 * SHIFTS + 1) ** 2 + _STATS + 3
 
 _FORMAT = "findview-stop-offsets"
 _VERSION = 1
-_GRAY = (0.299, 0.587, 0.114)
+_MID = OFFSET_CLASSES // 2
 
 
 class StopOffsetsError(ValueError):
@@ -69,8 +69,7 @@ class StopOffsetsError(ValueError):
 
 def _grey(images: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) uint8 or float (0-255) -> (B, H, W) float32, standardised per image (zero mean, unit std)."""
-    x = images.float()
-    g = (x[:, 0] * _GRAY[0] + x[:, 1] * _GRAY[1] + x[:, 2] * _GRAY[2]) / 255.0
+    g = gray(images) / 255.0
     return (g - g.mean(dim=(1, 2), keepdim=True)) / g.std(dim=(1, 2), keepdim=True).clamp_min(1e-3)
 
 
@@ -171,17 +170,20 @@ class StopOffsetNet(nn.Module):
         return out[:, :OFFSET_CLASSES], out[:, OFFSET_CLASSES:]
 
     @torch.no_grad()
+    def read(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:func:`pair_features` rows ``(B, FEATURES)`` -> the most likely ``dpitch``, ``dyaw`` (``(B,)`` long, degrees,
+        the view's offset from the target, -2..2) and the probability of no offset on either axis (``(B,)``)."""
+        pitch_logits, yaw_logits = self(features)
+        p_pitch, p_yaw = pitch_logits.softmax(dim=1), yaw_logits.softmax(dim=1)
+        return p_pitch.argmax(dim=1) - _MID, p_yaw.argmax(dim=1) - _MID, p_pitch[:, _MID] * p_yaw[:, _MID]
+
     def offsets(self, view: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(B, 3, H, W)`` rendered pairs -> the most likely ``dpitch``, ``dyaw`` (``(B,)`` long, degrees, the
-        view's offset from the target, -2..2) and the probability of no offset on either axis (``(B,)``)."""
+        """:meth:`read` of rendered pairs ``(B, 3, size, size)``."""
         if tuple(view.shape[-2:]) != (self.size, self.size):
             raise StopOffsetsError(
                 f"stop-offset net for {self.size}x{self.size} views got {tuple(view.shape[-2:])} pixels")
-        pitch_logits, yaw_logits = self(pair_features(view, target, self.fov))
-        p_pitch, p_yaw = pitch_logits.softmax(dim=1), yaw_logits.softmax(dim=1)
-        mid = OFFSET_CLASSES // 2
-        stay = p_pitch[:, mid] * p_yaw[:, mid]
-        return p_pitch.argmax(dim=1) - mid, p_yaw.argmax(dim=1) - mid, stay
+        return self.read(pair_features(view, target, self.fov))
+
 
 
 def save_stop_offsets(path: str | os.PathLike, net: StopOffsetNet, meta: dict) -> Path:

@@ -36,12 +36,12 @@ from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
 if TYPE_CHECKING:
     from findview_baselines.agents.stop_offsets import StopOffsetNet
 
-__all__ = ["residual_rotation", "phase_spectrum", "rotation_between", "StopRefiner"]
+__all__ = ["gray", "residual_rotation", "phase_spectrum", "rotation_between", "move_towards", "StopRefiner"]
 
 _GRAY = (0.299, 0.587, 0.114)
 
 
-def _gray(images: torch.Tensor) -> torch.Tensor:
+def gray(images: torch.Tensor) -> torch.Tensor:
     """(N, 3, H, W) uint8 or float -> (N, H, W) float32 gray."""
     x = images.float()
     return x[:, 0] * _GRAY[0] + x[:, 1] * _GRAY[1] + x[:, 2] * _GRAY[2]
@@ -69,7 +69,7 @@ def phase_spectrum(images: torch.Tensor, block: int = 1) -> torch.Tensor:
         x = images.permute(0, 2, 3, 1).float().reshape(n, hh // block, block, ww // block, block * 3).sum(dim=2)
         g = x @ (torch.tensor(_GRAY, device=images.device).repeat(block) / (block * block))
     else:
-        g = _gray(images)
+        g = gray(images)
     h, w = g.shape[-2:]
     window = torch.hann_window(h, periodic=False, device=g.device)[:, None] * torch.hann_window(w, periodic=False, device=g.device)[None, :]
     g = g - g.mean(dim=(1, 2), keepdim=True)
@@ -120,6 +120,19 @@ def residual_rotation(
     return rotation_between(phase_spectrum(view), phase_spectrum(target), fov, view.shape[-1])
 
 
+def move_towards(view_pitch: torch.Tensor, view_yaw: torch.Tensor, stay: torch.Tensor,
+                 min_stay: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The refinement's rule on a stop-offset net's reading (``StopOffsetNet.read``: the view's offset from the
+    target, degrees, and the probability of none; ``(B,)`` each): the one-degree move towards the target,
+    ``dpitch``, ``dyaw`` ``(B,)`` long in {-1, 0, 1} (up / right positive), on the axis with the larger offset (yaw
+    on ties); ``(0, 0)``, stay, where ``stay >= min_stay`` or no offset is read."""
+    still = stay >= min_stay
+    yaw_first = view_yaw.abs() >= view_pitch.abs()
+    dyaw = torch.where(still | ~yaw_first, torch.zeros_like(view_yaw), -view_yaw.sign())
+    dpitch = torch.where(still | yaw_first, torch.zeros_like(view_pitch), -view_pitch.sign())
+    return dpitch, dyaw
+
+
 class StopRefiner:
     """Per-slot state of the stop refinement (see the module docstring).
 
@@ -159,12 +172,11 @@ class StopRefiner:
             dyaw, dpitch, peak = (t.cpu() for t in residual_rotation(view, target, self.fov))
             trusted = (peak >= self.min_peak) & (self.moves[ids] < self.max_moves)
             off = torch.maximum(dyaw.abs(), dpitch.abs()) >= self.min_shift
-        else:  # the net's offsets of the view from the target, degrees: turn the other way (no peak needed)
+        else:  # the net's one-degree move towards the target (no peak needed)
             trusted = self.moves[ids] < self.max_moves
-            net = self.offsets.to(view.device)
-            view_pitch, view_yaw, stay = (t.cpu() for t in net.offsets(view, target))
-            dyaw, dpitch = -view_yaw.float(), -view_pitch.float()
-            off = (stay < self.min_stay) & ((dyaw != 0) | (dpitch != 0))
+            reading = (t.cpu() for t in self.offsets.to(view.device).offsets(view, target))
+            dpitch, dyaw = move_towards(*reading, self.min_stay)
+            off = (dyaw != 0) | (dpitch != 0)
         yaw_first = dyaw.abs() >= dpitch.abs()
         move = torch.where(
             yaw_first,

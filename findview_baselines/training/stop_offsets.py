@@ -24,6 +24,7 @@ from tqdm import tqdm
 from findview.corruptions import NAMES, corrupt
 from findview.sim.equi2pers import equi2pers
 from findview_baselines.agents.stop_offsets import FEATURES, OFFSET_CLASSES, StopOffsetNet, pair_features
+from findview_baselines.agents.stop_refine import move_towards
 
 __all__ = ["Pairs", "sample_pairs", "fit", "accuracy"]
 
@@ -81,11 +82,13 @@ def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: in
             b = min(n, a + _CHUNK)
             views = torch.empty(b - a, 3, size, size, dtype=torch.uint8)
             targets = torch.empty_like(views)
-            for i in range(a, b):
-                equi = panoramas[pano[i]][None]
-                targets[i - a] = equi2pers(equi, torch.tensor([float(pitch[i])]), torch.tensor([float(yaw[i])]), fov, size, size)[0]
-                views[i - a] = equi2pers(equi, torch.tensor([float(pitch[i] + dpitch[i])]),
-                                         torch.tensor([float(yaw[i] + dyaw[i])]), fov, size, size)[0]
+            for k in np.unique(pano[a:b]):  # one batched render per panorama of the chunk
+                rows = np.flatnonzero(pano[a:b] == k)
+                equi = panoramas[k][None].expand(len(rows), -1, -1, -1)
+                p, y = torch.as_tensor(pitch[a + rows], dtype=torch.float32), torch.as_tensor(yaw[a + rows], dtype=torch.float32)
+                targets[rows] = equi2pers(equi, p, y, fov, size, size)
+                views[rows] = equi2pers(equi, p + torch.as_tensor(dpitch[a + rows], dtype=torch.float32),
+                                        y + torch.as_tensor(dyaw[a + rows], dtype=torch.float32), fov, size, size)
             for c in np.unique(corruption[a:b]):
                 for s in range(1, 6):
                     rows = np.flatnonzero((corruption[a:b] == c) & (severity[a:b] == s))
@@ -135,14 +138,9 @@ def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float) -> dict[str, dic
     refinement leaves alone, and ``one_off``, the share of views one degree off (on one axis or both) whose first
     move goes towards the target, with the refinement's rule (move while P(on target) < ``min_stay``, on the axis
     with the larger predicted offset, yaw on ties)."""
-    pitch_logits, yaw_logits = net(pairs.features)
-    p_pitch, p_yaw = pitch_logits.softmax(1), yaw_logits.softmax(1)
-    stay = p_pitch[:, _MID] * p_yaw[:, _MID] >= min_stay
-    pred_pitch, pred_yaw = p_pitch.argmax(1) - _MID, p_yaw.argmax(1) - _MID
-    stay = stay | ((pred_pitch == 0) & (pred_yaw == 0))
-    yaw_first = pred_yaw.abs() >= pred_pitch.abs()
-    right_way = torch.where(yaw_first, (pred_yaw != 0) & (pred_yaw.sign() == pairs.dyaw.sign()),
-                            (pred_pitch != 0) & (pred_pitch.sign() == pairs.dpitch.sign()))
+    move_pitch, move_yaw = move_towards(*net.read(pairs.features), min_stay)
+    stay = (move_pitch == 0) & (move_yaw == 0)
+    right_way = torch.where(move_yaw != 0, move_yaw == -pairs.dyaw.sign(), move_pitch == -pairs.dpitch.sign())
     on = (pairs.dpitch == 0) & (pairs.dyaw == 0)
     one_off = ~on & (pairs.dpitch.abs() <= 1) & (pairs.dyaw.abs() <= 1)
     out = {}
