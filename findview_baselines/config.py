@@ -289,6 +289,12 @@ class PPOAgentConfig:
     findview_baselines/agents/stop_offsets.py."""
     refine_min_stay: float = 0.3
     """With ``refine_model``: the net's probability that the view is on the target below which the stop moves."""
+    refine_min_near: Optional[float] = None
+    """With ``refine_model`` (a net with the near output, tools/train_stop_offsets.py ``--far-fraction`` > 0): a STOP
+    of the policy whose view the net gives a probability of being near the target (within 3 degrees on each axis)
+    below this is refused, as ``stop_min_prob`` refuses one: the slot takes its most likely move and searches on,
+    and with ``stop_by`` that view no longer counts as stop-like. A stop on a look-alike part of the panorama then
+    does not end the episode. null = off."""
     stop_prob: Optional[float] = None
     """At evaluation (as ``refine_stop``): STOP whenever the policy gives STOP at least this probability, even when a
     move has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
@@ -341,6 +347,9 @@ class PPOAgentConfig:
         check(self.refine_model is None or self.refine_stop, "agent.refine_model", self.refine_model,
               "null, or a stop-offset file with agent.refine_stop=true")
         check(0 < self.refine_min_stay <= 1, "agent.refine_min_stay", self.refine_min_stay, "a probability in (0, 1]")
+        check(self.refine_min_near is None or (0 < self.refine_min_near < 1 and self.refine_model is not None),
+              "agent.refine_min_near", self.refine_min_near,
+              "null, or a probability in (0, 1) with agent.refine_model (a stop-offset net with the near output)")
         check(self.stop_prob is None or 0 < self.stop_prob <= 1, "agent.stop_prob", self.stop_prob,
               "null or a probability in (0, 1]")
         check(self.stop_min_prob is None or 0 < self.stop_min_prob <= 1, "agent.stop_min_prob", self.stop_min_prob,

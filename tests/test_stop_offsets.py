@@ -1,7 +1,8 @@
 """The learned stop check (findview_baselines/agents/stop_offsets.py, findview_baselines/training/stop_offsets.py,
 tools/train_stop_offsets.py): the correlation volume peaks at a hand-made shift, a net trained on a few hundred
 rendered pairs tells a view on its target from one a degree off and which way, the refinement follows a net's
-answer within its move budget, and files and settings are checked."""
+answer within its move budget, a net trained with far pairs refuses views elsewhere on a panorama it never saw and
+the agent searches on from a refused stop, and files and settings are checked."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from findview.dataset import generate_panorama
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
 from findview_baselines.agents.stop_offsets import (
     FEATURES,
+    NEAR_DEGREES,
     SHIFTS,
     StopOffsetNet,
     StopOffsetsError,
@@ -105,15 +107,18 @@ def test_a_net_trained_on_rendered_pairs_tells_on_target_from_one_degree_off(tra
     assert report["one_off"] >= 0.8, report
 
 
-def _fixed_net(pitch_class: int, yaw_class: int) -> StopOffsetNet:
-    """A net whose answer is always (pitch_class - 2, yaw_class - 2) degrees, surely."""
-    net = StopOffsetNet(FOV, SIZE, hidden=8)
+def _fixed_net(pitch_class: int, yaw_class: int, near: bool | None = None, size: int = SIZE) -> StopOffsetNet:
+    """A net whose answer is always (pitch_class - 2, yaw_class - 2) degrees, surely; with ``near`` given it has
+    the near output, surely ``near``."""
+    net = StopOffsetNet(FOV, size, hidden=8, near=near is not None)
     last = net.mlp[-1]
     with torch.no_grad():
         last.weight.zero_()
         last.bias.fill_(-20.0)
         last.bias[pitch_class] = 20.0
         last.bias[5 + yaw_class] = 20.0
+        if near is not None:
+            last.bias[10] = 20.0 if near else -20.0
     return net.eval()
 
 
@@ -135,6 +140,77 @@ def test_refiner_follows_the_net(pitch_class: int, yaw_class: int, first: int) -
     assert refiner.refining.tolist() == [False, False]
 
 
+def test_far_pairs_leave_the_near_pairs_as_they_were(panoramas) -> None:
+    """``far_fraction`` moves about that share of the views elsewhere (offsets beyond ``NEAR_DEGREES``, yaw wrapped
+    to -180..180) and leaves every other pair as ``far_fraction=0`` draws it, features included."""
+    plain = sample_pairs(panoramas[:1], 200, FOV, SIZE, seed=3, corruptions=("fog", "glass_blur"))
+    mixed = sample_pairs(panoramas[:1], 200, FOV, SIZE, seed=3, corruptions=("fog", "glass_blur"), far_fraction=0.3)
+    moved = (mixed.dpitch != plain.dpitch) | (mixed.dyaw != plain.dyaw)
+    assert 40 <= int(moved.sum()) <= 80
+    assert not mixed.near[moved].any() and plain.near.all()
+    assert int(mixed.dyaw.abs().max()) <= 180 and int(mixed.dyaw.abs().max()) > 30  # some anywhere on the panorama
+    assert torch.equal(mixed.corruption, plain.corruption) and torch.equal(mixed.severity, plain.severity)
+    torch.testing.assert_close(mixed.features[~moved], plain.features[~moved], rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="far_fraction"):
+        sample_pairs(panoramas[:1], 10, FOV, SIZE, seed=3, far_fraction=1.0)
+
+
+def test_a_net_trained_with_far_pairs_refuses_views_elsewhere(panoramas) -> None:
+    """Trained on 600 pairs of two panoramas, a third of them far (clean targets): on the third panorama at least
+    90% of views within 2 degrees of their target are kept and at least 85% of far views refused, and views on
+    their target are still left alone."""
+    train = sample_pairs(panoramas[:2], 600, FOV, SIZE, seed=4, clean_fraction=1.0, far_fraction=0.33)
+    val = sample_pairs(panoramas[2:], 300, FOV, SIZE, seed=5, clean_fraction=1.0, far_fraction=0.33)
+    net = fit(train, FOV, SIZE, epochs=15, seed=0)
+    assert net.near
+    report = accuracy(net, val, min_stay=0.3, min_near=0.5)["clean"]
+    assert report["keep"] >= 0.9 and report["refuse"] >= 0.85, report
+    assert report["stay"] >= 0.9, report
+
+
+def test_refiner_refuses_the_stops_the_net_finds_far() -> None:
+    img = (torch.rand(3, 3, SIZE, SIZE, generator=torch.Generator().manual_seed(0)) * 255).to(torch.uint8)
+    far = StopRefiner(3, FOV, offsets=_fixed_net(2, 2, near=False), min_near=0.5)
+    near = StopRefiner(3, FOV, offsets=_fixed_net(2, 2, near=True), min_near=0.5)
+    assert far.refuse(img, img).tolist() == [True] * 3 and near.refuse(img, img).tolist() == [False] * 3
+    with pytest.raises(ValueError, match="near output"):
+        StopRefiner(3, FOV, offsets=_fixed_net(2, 2), min_near=0.5)
+    with pytest.raises(ValueError, match="near output"):
+        StopRefiner(3, FOV, min_near=0.5)
+    with pytest.raises(ValueError, match="min_near"):
+        StopRefiner(3, FOV, offsets=_fixed_net(2, 2, near=True), min_near=1.0)
+    with pytest.raises(StopOffsetsError, match="no near output"):
+        _fixed_net(2, 2).near_prob(img, img)
+
+
+def test_agent_searches_on_from_a_stop_the_net_refuses() -> None:
+    """A policy fixed at P = (0.1, 0.05, 0.15, 0.2, 0.5) for (UP, DOWN, LEFT, RIGHT, STOP) stops at once; with a
+    net that finds every view far and ``min_near`` the stop is refused for its most likely move, RIGHT, and with
+    ``stop_by`` the agent never walks back to a refused view (none counts as stop-like), so it never stops; with
+    a net that finds the view near, the stop stands."""
+    from findview.episode import Episode
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.rl.policy import Policy
+
+    policy = Policy(32, 32, "direct", hidden_size=8)
+    with torch.no_grad():
+        policy.actor.weight.zero_()
+        policy.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.05, 0.15, 0.2, 0.5])))
+    pixels = torch.rand(1, 3, 160, 160, generator=torch.Generator().manual_seed(1))
+    obs = {"view": (pixels * 255).to(torch.uint8), "target": (pixels * 255).to(torch.uint8)}
+
+    def actions(steps: int, near: bool, **kw) -> list[int]:
+        refiner = StopRefiner(1, FOV, offsets=_fixed_net(2, 2, near=near, size=160), min_near=0.5)
+        agent = PPOAgent(policy, 1, refiner=refiner, fov=FOV, **kw)
+        agent.reset([0], [Episode("e", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=1)])
+        return [int(agent.act(obs)[0]) for _ in range(steps)]
+
+    assert actions(1, near=True) == [STOP]
+    assert actions(1, near=False) == [RIGHT]
+    walked = actions(30, near=False, revisit_penalty=16.0, stop_by=30)
+    assert STOP not in walked
+
+
 def test_files_round_trip_and_bad_files_are_named(trained, tmp_path) -> None:
     net, val = trained
     path = save_stop_offsets(tmp_path / "net.pth", net, {"note": "test"})
@@ -154,6 +230,18 @@ def test_files_round_trip_and_bad_files_are_named(trained, tmp_path) -> None:
         load_stop_offsets(tmp_path / "missing.pth")
     with pytest.raises(StopOffsetsError, match="160x160 views got"):
         again.offsets(torch.zeros(1, 3, 64, 64, dtype=torch.uint8), torch.zeros(1, 3, 64, 64, dtype=torch.uint8))
+    # a version-1 file (before the near output) still loads, without it; an unknown version is named
+    state["version"] = 1
+    del state["near"]
+    torch.save(state, tmp_path / "v1.pth")
+    v1 = load_stop_offsets(tmp_path / "v1.pth", fov=FOV, size=SIZE)
+    assert not v1.near and torch.equal(v1(val.features[:5])[1], net(val.features[:5])[1])
+    state["version"] = 7
+    torch.save(state, tmp_path / "v7.pth")
+    with pytest.raises(StopOffsetsError, match="v7.pth: stop-offset net version 7"):
+        load_stop_offsets(tmp_path / "v7.pth")
+    near = save_stop_offsets(tmp_path / "near.pth", _fixed_net(1, 3, near=True), {})
+    assert load_stop_offsets(near).near
 
 
 def test_config_checks_the_refine_model_settings() -> None:
@@ -165,6 +253,10 @@ def test_config_checks_the_refine_model_settings() -> None:
         PPOAgentConfig(refine_stop=True, refine_min_stay=0.0)
     with pytest.raises(ValueError, match="min_stay"):
         StopRefiner(1, FOV, min_stay=1.5)
+    with pytest.raises(ValueError, match="agent.refine_min_near.*agent.refine_model"):
+        PPOAgentConfig(refine_stop=True, refine_min_near=0.5)
+    with pytest.raises(ValueError, match="agent.refine_min_near"):
+        PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.0)
 
 
 def test_agent_refiner_loads_the_net_for_its_views(trained, tmp_path) -> None:
@@ -179,6 +271,11 @@ def test_agent_refiner_loads_the_net_for_its_views(trained, tmp_path) -> None:
     with pytest.raises(StopOffsetsError, match="made for 160x160 views"):
         _refiner(cfg, 3, 256)
     assert _refiner(PPOAgentConfig(refine_stop=True), 3, SIZE).offsets is None
+    with pytest.raises(ValueError, match="near output"):  # this net was trained without far pairs
+        _refiner(PPOAgentConfig(refine_stop=True, refine_model=str(path), refine_min_near=0.5, fov=FOV), 3, SIZE)
+    near = save_stop_offsets(tmp_path / "near.pth", _fixed_net(2, 2, near=True), {})
+    refiner = _refiner(PPOAgentConfig(refine_stop=True, refine_model=str(near), refine_min_near=0.6, fov=FOV), 3, SIZE)
+    assert refiner.min_near == 0.6 and refiner.offsets.near
 
 
 def test_tool_refuses_bad_input(tmp_path) -> None:
@@ -192,6 +289,9 @@ def test_tool_refuses_bad_input(tmp_path) -> None:
     run = subprocess.run(tool + ["--splits", str(splits), "--root", str(tmp_path), "--out", str(out),
                                  "--blur-corruptions", "haze"], capture_output=True, text=True)
     assert run.returncode == 2 and "haze" in run.stderr
+    run = subprocess.run(tool + ["--splits", str(splits), "--root", str(tmp_path), "--out", str(out),
+                                 "--far-fraction", "1.5"], capture_output=True, text=True)
+    assert run.returncode == 2 and "--far-fraction in [0, 1) (got 1.5)" in run.stderr
     out.write_bytes(b"x")
     run = subprocess.run(tool + ["--splits", str(splits), "--root", str(tmp_path), "--out", str(out)],
                          capture_output=True, text=True)
@@ -215,5 +315,7 @@ def test_tool_trains_a_file_the_agent_loads(panoramas, tmp_path) -> None:
          "--epochs", "1"], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]
     state = torch.load(out, weights_only=True)
-    assert state["meta"]["pairs"] == 60 and "clean" in state["meta"]["val"]
-    assert load_stop_offsets(out, fov=FOV, size=SIZE).size == SIZE
+    assert state["meta"]["pairs"] == 60 and "clean" in state["meta"]["val"] and state["meta"]["far_fraction"] == 0.25
+    loaded = load_stop_offsets(out, fov=FOV, size=SIZE)
+    assert loaded.size == SIZE and loaded.near  # the default far pairs give it the near output
+    assert {"keep", "refuse"} <= set(state["meta"]["val"]["clean"])

@@ -9,9 +9,12 @@ Usage::
 Pairs of a target (corrupted: every corruption, severity 1-5, 20% clean) and a view a few degrees from it are
 rendered from the **train** panoramas of ``--splits`` (``--pairs`` of them, plus ``--blur-pairs`` with the
 corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
-offset per axis (findview_baselines/agents/stop_offsets.py). ``--val-pairs`` pairs from the **val** panoramas
+offset per axis (findview_baselines/agents/stop_offsets.py). A ``--far-fraction`` of the pairs (and of the val
+pairs) put the view elsewhere on the panorama instead, so that the net also learns whether a view is near its
+target at all (the near output ``agent.refine_min_near`` uses to refuse stops on look-alike views). ``--val-pairs`` pairs from the **val** panoramas
 report how often a view on its target is left alone and how often a view one degree off is sent the right way,
-per corruption (the ``stay`` / ``one_off`` of findview_baselines/training/stop_offsets.py, ``accuracy``); they
+and with the near output how often a view at most 2 degrees off is kept and a far one refused, per corruption (the
+``stay`` / ``one_off`` / ``keep`` / ``refuse`` of findview_baselines/training/stop_offsets.py, ``accuracy``); they
 are stored in the file with the command's settings. The file is written atomically; an existing ``--out`` is
 replaced only with ``--overwrite``. Bad input prints one line and exits with status 2.
 """
@@ -52,12 +55,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="the .pth to write")
     p.add_argument("--fov", type=float, default=90.0, help="field of view of the views, degrees (default 90)")
     p.add_argument("--size", type=int, default=256, help="view side, pixels (default 256)")
-    p.add_argument("--pairs", type=int, default=24000, help="training pairs, every corruption (default 24000)")
+    p.add_argument("--pairs", type=int, default=32000, help="training pairs, every corruption (default 32000)")
+    p.add_argument("--far-fraction", type=float, default=0.25,
+                   help="share of --pairs and --val-pairs whose view is far from the target, for the near output "
+                        "(agent.refine_min_near); 0: a net without it (default 0.25)")
     p.add_argument("--blur-pairs", type=int, default=10000, help="more training pairs, --blur-corruptions only (default 10000)")
     p.add_argument("--blur-corruptions", default="motion_blur,glass_blur", help="comma-separated corruption names")
     p.add_argument("--val-pairs", type=int, default=3000, help="val pairs for the report (default 3000)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--min-stay", type=float, default=0.3, help="the refinement's threshold the report uses (agent.refine_min_stay)")
+    p.add_argument("--min-near", type=float, default=0.5, help="the stop check's threshold the report uses (agent.refine_min_near)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -68,9 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     blur = [c for c in args.blur_corruptions.split(",") if c]
     bad = [c for c in blur if c not in NAMES]
-    if bad or args.size < 142 or args.pairs < 1 or args.val_pairs < 1:
+    if bad or args.size < 142 or args.pairs < 1 or args.val_pairs < 1 or not 0 <= args.far_fraction < 1:
         print(f"train_stop_offsets: expected corruption names from {', '.join(NAMES)} (got {bad}), --size >= 142 "
-              f"pixels, and positive --pairs / --val-pairs", file=sys.stderr)
+              f"pixels, positive --pairs / --val-pairs and --far-fraction in [0, 1) (got {args.far_fraction})",
+              file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
     start = time.time()
@@ -81,16 +89,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train_stop_offsets: {err}", file=sys.stderr)
         return 2
     print(f"{len(train_panos)} train and {len(val_panos)} val panoramas; sampling pairs", flush=True)
-    parts = [sample_pairs(train_panos, args.pairs, args.fov, args.size, args.seed, progress=True)]
+    far = args.far_fraction
+    parts = [sample_pairs(train_panos, args.pairs, args.fov, args.size, args.seed, progress=True, far_fraction=far)]
     if args.blur_pairs and blur:
         parts.append(sample_pairs(train_panos, args.blur_pairs, args.fov, args.size, args.seed + 1, blur, progress=True))
-    val = sample_pairs(val_panos, args.val_pairs, args.fov, args.size, args.seed + 2, progress=True)
+    val = sample_pairs(val_panos, args.val_pairs, args.fov, args.size, args.seed + 2, progress=True, far_fraction=far)
     net = fit(Pairs.cat(parts), args.fov, args.size, args.epochs, args.seed)
-    report = accuracy(net, val, args.min_stay)
-    print(f"{'val pairs':18s} {'stay':>6s} {'one_off':>8s}")
+    report = accuracy(net, val, args.min_stay, args.min_near)
+    columns = ["stay", "one_off"] + (["keep", "refuse"] if net.near else [])
+    print(f"{'val pairs':18s}" + "".join(f" {c:>8s}" for c in columns))
     for name, r in report.items():
-        print(f"{name:18s} {r['stay']:6.3f} {r['one_off']:8.3f}")
-    meta = {"command": " ".join(sys.argv), "splits": str(args.splits), "pairs": args.pairs,
+        print(f"{name:18s}" + "".join(f" {r[c]:8.3f}" for c in columns))
+    meta = {"command": " ".join(sys.argv), "splits": str(args.splits), "pairs": args.pairs, "far_fraction": far,
+            "min_near": args.min_near,
             "blur_pairs": args.blur_pairs, "blur_corruptions": blur, "epochs": args.epochs, "seed": args.seed,
             "min_stay": args.min_stay, "val": report, "seconds": round(time.time() - start, 1)}
     save_stop_offsets(out, net, meta)

@@ -13,7 +13,10 @@
   so a trajectory does not depend on which slot or batch the episode ran in.
 - A slot that answered STOP keeps answering STOP without running the network until it is reset.
 - ``refine_stop=true`` checks each stop: when phase correlation measures the target at least half a degree
-  away, the agent moves towards it first (:mod:`findview_baselines.agents.stop_refine`).
+  away, the agent moves towards it first (:mod:`findview_baselines.agents.stop_refine`). A refiner with a
+  stop-offset net and ``min_near`` also refuses a policy STOP whose view the net finds far from the target: the
+  slot takes its most likely move instead (greedy, also with ``sample``), and with ``stop_by`` that view does not
+  count as stop-like.
 - ``revisit_penalty > 0`` switches on a search memory (:class:`~findview_baselines.rl.search_memory.RevisitPenalty`):
   each move's logit is lowered by that many logit units per earlier visit of the pose it leads to (poses
   dead-reckoned from the agent's own actions), which breaks left/right loops. 0 (the default) is the plain policy.
@@ -379,11 +382,23 @@ class PPOAgent(Agent):
             a_t = logits.argmax(dim=-1)
         if self.stop_prob is not None:  # the policy's own STOP probability, before the search memory
             a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
+        stop_like = dist.probs[:, STOP]
+        if self.refiner is not None and self.refiner.min_near is not None:  # a STOP on a view far from the target
+            asks = torch.nonzero(a_t == STOP).flatten()
+            if len(asks):
+                at = idx[asks]
+                refused = asks[self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])]
+                if len(refused):  # its most likely move instead; that view no longer counts as stop-like
+                    moves = logits[refused].clone()
+                    moves[:, STOP] = float("-inf")
+                    a_t, stop_like = a_t.clone(), stop_like.clone()
+                    a_t[refused] = moves.argmax(dim=-1)
+                    stop_like[refused] = 0.0
         if self.give_up is not None:  # remember the most stop-like pose; walk back to it when the steps left are just enough
             pitch, yaw = self.revisits.pitch[idx], self.revisits.yaw[idx]
             if self.give_up.phase:
                 self.give_up.measure(idx, pitch, yaw, *rendered)
-            late = self.give_up.observe(idx, dist.probs[:, STOP], pitch, yaw) & (a_t != STOP)
+            late = self.give_up.observe(idx, stop_like, pitch, yaw) & (a_t != STOP)
             if bool(late.any()):
                 a_t = a_t.clone()
                 a_t[late] = self.give_up.walk(idx[late], pitch[late], yaw[late])
@@ -400,7 +415,8 @@ def _refiner(cfg: "PPOAgentConfig", num_envs: int, width: int | None) -> StopRef
         from findview_baselines.agents.stop_offsets import load_stop_offsets
 
         offsets = load_stop_offsets(cfg.refine_model, fov=cfg.fov, size=width)
-    return StopRefiner(num_envs, cfg.fov, cfg.refine_moves, offsets=offsets, min_stay=cfg.refine_min_stay)
+    return StopRefiner(num_envs, cfg.fov, cfg.refine_moves, offsets=offsets, min_stay=cfg.refine_min_stay,
+                       min_near=cfg.refine_min_near)
 
 
 def _register() -> None:

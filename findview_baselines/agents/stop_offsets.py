@@ -13,12 +13,15 @@ and target over pixel shifts ``-R..R`` on three bands (the image, a blurred copy
 ``(2R+1)^2`` volume; gradient energies along four directions of the target, and their ratio to the view's (how
 blurred, and along which direction, the target is); and the phase-correlation residual with its peak. A small
 MLP (:class:`StopOffsetNet`) maps them to two 5-way classifications, the view's pitch and yaw offset from the
-target clipped to ``-2..2`` degrees.
+target clipped to ``-2..2`` degrees, and (files of version 2 made with far pairs) a third output, whether the view
+is near the target at all (within :data:`NEAR_DEGREES` on both axes) or on another part of the panorama: a check
+that a stop is on the target, not on a look-alike.
 
 A :class:`~findview_baselines.agents.stop_refine.StopRefiner` given such a net (``agent.refine_model``) moves
 one degree towards the target while the net's probability of "no offset" is below ``min_stay``; the net is for
 the view size and field of view it was trained on (stored in its file). ``tools/train_stop_offsets.py`` makes
-one.
+one. With ``agent.refine_min_near`` the agent also refuses a STOP whose view the net finds far from the target
+(:meth:`StopOffsetNet.near_prob`) and searches on.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ __all__ = [
     "SHIFTS",
     "CROP",
     "OFFSET_CLASSES",
+    "NEAR_DEGREES",
     "FEATURES",
     "ncc_volume",
     "pair_features",
@@ -53,13 +57,17 @@ CROP = 128
 """Side of the target's central square that is correlated, pixels."""
 OFFSET_CLASSES = 5
 """Classes per axis: offsets -2, -1, 0, 1, 2 degrees (larger offsets are labelled +-2)."""
+NEAR_DEGREES = 3
+"""A view is *near* its target when it is at most this many degrees off on each axis (the offsets the net was
+trained to read); farther views are the near output's negatives."""
 _BANDS = 3
 _STATS = 16
 FEATURES = _BANDS * (2 * SHIFTS + 1) ** 2 + _STATS + 3
 """Length of a :func:`pair_features` row."""
 
 _FORMAT = "findview-stop-offsets"
-_VERSION = 1
+_VERSION = 2
+_READS = (1, 2)  # version 1: no near output
 _MID = OFFSET_CLASSES // 2
 
 
@@ -149,25 +157,32 @@ class StopOffsetNet(nn.Module):
     Args:
         fov: the field of view (degrees) and ``size`` the square view side (pixels) it is for.
         hidden: width of its two hidden layers.
+        near: whether it has the near output (trained with far pairs).
     ``forward(features (B, FEATURES)) -> (pitch_logits (B, 5), yaw_logits (B, 5))``, classes = offsets -2..2
     degrees of the view from the target (pitch up +, yaw right +). The feature normaliser (``mean``, ``std``)
-    is part of its state.
+    is part of its state. :meth:`outputs` gives the near output's logit (``(B,)``) as well.
     """
 
-    def __init__(self, fov: float, size: int, hidden: int = 256, dropout: float = 0.2) -> None:
+    def __init__(self, fov: float, size: int, hidden: int = 256, dropout: float = 0.2, near: bool = False) -> None:
         super().__init__()
-        self.fov, self.size, self.hidden = float(fov), int(size), int(hidden)
+        self.fov, self.size, self.hidden, self.near = float(fov), int(size), int(hidden), bool(near)
         self.register_buffer("mean", torch.zeros(FEATURES))
         self.register_buffer("std", torch.ones(FEATURES))
         self.mlp = nn.Sequential(
             nn.Dropout(dropout), nn.Linear(FEATURES, hidden), nn.ReLU(),
             nn.Dropout(dropout), nn.Linear(hidden, hidden), nn.ReLU(),
-            nn.Linear(hidden, 2 * OFFSET_CLASSES),
+            nn.Linear(hidden, 2 * OFFSET_CLASSES + int(self.near)),
         )
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pitch_logits, yaw_logits, _ = self.outputs(features)
+        return pitch_logits, yaw_logits
+
+    def outputs(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``(pitch_logits (B, 5), yaw_logits (B, 5), near_logit (B,) or None without the near output)``."""
         out = self.mlp((features - self.mean) / self.std)
-        return out[:, :OFFSET_CLASSES], out[:, OFFSET_CLASSES:]
+        near = out[:, 2 * OFFSET_CLASSES] if self.near else None
+        return out[:, :OFFSET_CLASSES], out[:, OFFSET_CLASSES:2 * OFFSET_CLASSES], near
 
     @torch.no_grad()
     def read(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -179,10 +194,23 @@ class StopOffsetNet(nn.Module):
 
     def offsets(self, view: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`read` of rendered pairs ``(B, 3, size, size)``."""
+        self._check_size(view)
+        return self.read(pair_features(view, target, self.fov))
+
+    @torch.no_grad()
+    def near_prob(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The probability ``(B,)`` that each rendered view ``(B, 3, size, size)`` is near its target (within
+        :data:`NEAR_DEGREES` on both axes), not on another part of the panorama. Needs the near output."""
+        if not self.near:
+            raise StopOffsetsError("this stop-offset net has no near output (made without far pairs: "
+                                   "tools/train_stop_offsets.py --far-fraction)")
+        self._check_size(view)
+        return torch.sigmoid(self.outputs(pair_features(view, target, self.fov))[2])
+
+    def _check_size(self, view: torch.Tensor) -> None:
         if tuple(view.shape[-2:]) != (self.size, self.size):
             raise StopOffsetsError(
                 f"stop-offset net for {self.size}x{self.size} views got {tuple(view.shape[-2:])} pixels")
-        return self.read(pair_features(view, target, self.fov))
 
 
 
@@ -191,7 +219,7 @@ def save_stop_offsets(path: str | os.PathLike, net: StopOffsetNet, meta: dict) -
     accuracy) to ``path`` atomically; loads with ``torch.load(..., weights_only=True)``."""
     state = {
         "format": _FORMAT, "version": _VERSION, "fov": net.fov, "size": net.size, "hidden": net.hidden,
-        "features": FEATURES, "net": {k: v.detach().cpu() for k, v in net.state_dict().items()}, "meta": dict(meta),
+        "near": net.near, "features": FEATURES, "net": {k: v.detach().cpu() for k, v in net.state_dict().items()}, "meta": dict(meta),
     }
     return atomic_write(path, lambda tmp: torch.save(state, tmp))
 
@@ -209,10 +237,12 @@ def load_stop_offsets(path: str | os.PathLike, fov: float | None = None, size: i
     if not isinstance(state, dict) or state.get("format") != _FORMAT:
         raise StopOffsetsError(f"{path}: not a stop-offset net (expected format {_FORMAT!r}, "
                                f"made by tools/train_stop_offsets.py)")
-    if state.get("version") != _VERSION or state.get("features") != FEATURES:
+    if state.get("version") not in _READS or state.get("features") != FEATURES:
         raise StopOffsetsError(f"{path}: stop-offset net version {state.get('version')} with "
-                               f"{state.get('features')} features; this findview reads version {_VERSION}, {FEATURES}")
-    net = StopOffsetNet(float(state["fov"]), int(state["size"]), int(state["hidden"]))
+                               f"{state.get('features')} features; this findview reads versions "
+                               f"{', '.join(map(str, _READS))} with {FEATURES}")
+    near = bool(state.get("near", False)) if state["version"] >= 2 else False
+    net = StopOffsetNet(float(state["fov"]), int(state["size"]), int(state["hidden"]), near=near)
     net.load_state_dict(state["net"])
     if fov is not None and abs(float(fov) - net.fov) > 1e-6:
         raise StopOffsetsError(f"{path}: made for FoV {net.fov:g} degrees, the views have FoV {float(fov):g}")

@@ -20,6 +20,10 @@ refines those stops. It learned the offsets that
 corruptions such as glass blur put between a target's content and its pose, which the measured shift reads as a
 rotation.
 
+A net with the near output (trained with far pairs) and ``min_near`` also checks that a stop is on the target at
+all: :meth:`StopRefiner.refuse` says which stops are on views the net finds far from their target, and the agent
+searches on from those (``agent.refine_min_near``).
+
 Batched over environments, on any device (``torch.fft``).
 """
 
@@ -145,10 +149,14 @@ class StopRefiner:
         offsets: a learned stop-offset net that decides the moves instead of the residual (see the module
             docstring); ``None``: the residual decides.
         min_stay: with ``offsets``, the net's probability of "on the target" below which the slot moves.
+        min_near: with ``offsets`` that have the near output: :meth:`refuse` refuses a stop whose view the net
+            gives a probability of being near the target below this (``None``: every stop is refined, none
+            refused).
     """
 
     def __init__(self, num_envs: int, fov: float, max_moves: int = 4, min_shift: float = 0.5,
-                 min_peak: float = 0.15, offsets: "StopOffsetNet | None" = None, min_stay: float = 0.3) -> None:
+                 min_peak: float = 0.15, offsets: "StopOffsetNet | None" = None, min_stay: float = 0.3,
+                 min_near: float | None = None) -> None:
         if max_moves < 1:
             raise ValueError(f"max_moves must be >= 1, got {max_moves}")
         if not 0 < fov < 180:
@@ -156,13 +164,27 @@ class StopRefiner:
         if not 0 < min_stay <= 1:
             raise ValueError(f"min_stay must be a probability in (0, 1], got {min_stay}")
         self.fov, self.max_moves, self.min_shift, self.min_peak = float(fov), int(max_moves), float(min_shift), float(min_peak)
+        if min_near is not None:
+            if not 0 < min_near < 1:
+                raise ValueError(f"min_near must be a probability in (0, 1) or None, got {min_near}")
+            if offsets is None or not offsets.near:
+                raise ValueError("min_near needs a stop-offset net with the near output "
+                                 "(tools/train_stop_offsets.py --far-fraction > 0)")
         self.offsets, self.min_stay = offsets, float(min_stay)
+        self.min_near = None if min_near is None else float(min_near)
         self.refining = torch.zeros(num_envs, dtype=torch.bool)
         self.moves = torch.zeros(num_envs, dtype=torch.long)
 
     def reset(self, env_ids: list[int]) -> None:
         self.refining[env_ids] = False
         self.moves[env_ids] = 0
+
+    def refuse(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``(B,)`` bool on the views' device: the stops to refuse, where the net's probability that the view
+        ``(B, 3, H, W)`` is near its target is below ``min_near`` (a look-alike part of the panorama)."""
+        if self.min_near is None:
+            raise ValueError("StopRefiner.refuse: no min_near given")
+        return self.offsets.to(view.device).near_prob(view, target) < self.min_near
 
     def decide(self, env_ids: torch.Tensor, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Actions (len(env_ids),) for slots that want to stop or are refining: one degree towards the

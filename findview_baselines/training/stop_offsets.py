@@ -3,7 +3,9 @@
 A pair is a target rendered at a random pose of a panorama (pitch -50..50, yaw -179..180 degrees), corrupted as the
 robust agents train (each corruption equally likely, severity 1-5; a ``clean_fraction`` left clean), and a view
 rendered ``(dpitch, dyaw)`` degrees from it: each axis 0 with probability 0.4, else +-1, +-2 or +-3 equally. The
-label is the offset per axis, clipped to -2..2. Only the features of a pair are kept (:func:`pair_features`), so
+label is the offset per axis, clipped to -2..2. With ``far_fraction`` some views are put far from their target
+instead (half anywhere on the panorama, half 4-30 degrees off on one axis and up to 30 on the other): the negatives of the net's near output
+(a view within :data:`~findview_baselines.agents.stop_offsets.NEAR_DEGREES` on both axes is near). Only the features of a pair are kept (:func:`pair_features`), so
 memory grows by about 3 KB a pair.
 
 :func:`sample_pairs` makes them, :func:`fit` trains the MLP (Adam, cosine learning rate, cross-entropy of both axes)
@@ -23,7 +25,7 @@ from tqdm import tqdm
 
 from findview.corruptions import NAMES, corrupt
 from findview.sim.equi2pers import equi2pers
-from findview_baselines.agents.stop_offsets import FEATURES, OFFSET_CLASSES, StopOffsetNet, pair_features
+from findview_baselines.agents.stop_offsets import FEATURES, NEAR_DEGREES, OFFSET_CLASSES, StopOffsetNet, pair_features
 from findview_baselines.agents.stop_refine import move_towards
 
 __all__ = ["Pairs", "sample_pairs", "fit", "accuracy"]
@@ -47,6 +49,11 @@ class Pairs:
     def __len__(self) -> int:
         return len(self.dpitch)
 
+    @property
+    def near(self) -> torch.Tensor:
+        """``(N,)`` bool: the view is within ``NEAR_DEGREES`` of its target on both axes."""
+        return (self.dpitch.abs() <= NEAR_DEGREES) & (self.dyaw.abs() <= NEAR_DEGREES)
+
     @staticmethod
     def cat(parts: Sequence["Pairs"]) -> "Pairs":
         return Pairs(*(torch.cat([getattr(p, k) for p in parts]) for k in
@@ -58,13 +65,34 @@ def _axis_offsets(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.where(rng.random(n) < 0.4, 0, magnitude)
 
 
+def _far_offsets(seed: int, n: int, pitch: np.ndarray, yaw: np.ndarray, far_fraction: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which of ``n`` pairs get a far view, and its offsets ``(dpitch, dyaw)`` from the target (degrees, yaw wrapped
+    to -180..180): half at a uniform pose (pitch -60..60), half 4-30 degrees off on one axis and 0-30 on the other, either sign. Drawn
+    from their own stream so that ``far_fraction=0`` leaves the near pairs as they were."""
+    rng = np.random.default_rng([seed, 1])
+    far = rng.random(n) < far_fraction
+    anywhere = rng.random(n) < 0.5
+    major = rng.integers(4, 31, n) * np.where(rng.random(n) < 0.5, -1, 1)  # one axis 4-30 off, the other 0-30
+    minor = rng.integers(0, 31, n) * np.where(rng.random(n) < 0.5, -1, 1)
+    pitch_major = rng.random(n) < 0.5
+    near_p, near_y = np.where(pitch_major, major, minor), np.where(pitch_major, minor, major)
+    any_p = rng.integers(-60, 61, n) - pitch
+    any_y = (rng.integers(-179, 181, n) - yaw + 180) % 360 - 180
+    return far, np.where(anywhere, any_p, near_p), np.where(anywhere, any_y, near_y)
+
+
 def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: int, seed: int,
-                 corruptions: Sequence[str] = NAMES, clean_fraction: float = 0.2, progress: bool = False) -> Pairs:
+                 corruptions: Sequence[str] = NAMES, clean_fraction: float = 0.2, progress: bool = False,
+                 far_fraction: float = 0.0) -> Pairs:
     """``n`` pairs from ``panoramas`` (each ``(3, He, 2 He)`` uint8), views ``size x size`` pixels over ``fov``
-    degrees, targets corrupted by one of ``corruptions`` (or clean, ``clean_fraction``); reproducible from ``seed``."""
+    degrees, targets corrupted by one of ``corruptions`` (or clean, ``clean_fraction``), a ``far_fraction`` of the
+    views far from their target (module docstring); reproducible from ``seed``."""
     unknown = [c for c in corruptions if c not in NAMES]
     if unknown or not corruptions:
         raise ValueError(f"corruptions {list(corruptions)}: expected names from {', '.join(NAMES)}")
+    if not 0.0 <= far_fraction < 1.0:
+        raise ValueError(f"far_fraction must be in [0, 1), got {far_fraction}")
     if not panoramas:
         raise ValueError("sample_pairs: no panoramas")
     rng = np.random.default_rng(seed)
@@ -76,6 +104,9 @@ def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: in
     names = np.array([NAMES.index(c) for c in corruptions])
     corruption = np.where(rng.random(n) < clean_fraction, -1, names[rng.integers(0, len(names), n)])
     severity = rng.integers(1, 6, n)
+    if far_fraction > 0:
+        far, far_p, far_y = _far_offsets(seed, n, pitch, yaw, far_fraction)
+        dpitch, dyaw = np.where(far, far_p, dpitch), np.where(far, far_y, dyaw)
     features = []
     with tqdm(total=n, unit="pair", disable=not progress, dynamic_ncols=True) as bar:
         for a in range(0, n, _CHUNK):
@@ -101,17 +132,22 @@ def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: in
 
 
 def _labels(offsets: torch.Tensor) -> torch.Tensor:
-    return offsets.clamp(-_MID, _MID) + _MID
+    return offsets.clamp(-_MID, _MID) + _MID  # far pairs' labels are never used
 
 
 def fit(train: Pairs, fov: float, size: int, epochs: int = 30, seed: int = 0, hidden: int = 256,
         batch: int = 256, lr: float = 1e-3) -> StopOffsetNet:
     """Train a :class:`StopOffsetNet` on ``train`` (its normaliser from ``train``'s features); returns it in eval
-    mode."""
+    mode. Pairs with far views give the net its near output (binary cross-entropy on all pairs); the offsets are
+    learned from the near pairs only."""
     if len(train) == 0 or train.features.shape[1] != FEATURES:
         raise ValueError(f"fit: expected pairs with {FEATURES} features, got {tuple(train.features.shape)}")
+    near = train.near
+    with_far = bool((~near).any())
+    if not near.any():
+        raise ValueError("fit: every pair is far; the offsets need near pairs")
     torch.manual_seed(seed)
-    net = StopOffsetNet(fov, size, hidden)
+    net = StopOffsetNet(fov, size, hidden, near=with_far)
     net.mean.copy_(train.features.mean(0))
     net.std.copy_(train.features.std(0).clamp_min(1e-4))
     opt = torch.optim.Adam(net.mlp.parameters(), lr, weight_decay=1e-4)
@@ -123,8 +159,11 @@ def fit(train: Pairs, fov: float, size: int, epochs: int = 30, seed: int = 0, hi
         order = torch.randperm(len(train), generator=shuffle)
         for i in range(0, len(order), batch):
             rows = order[i:i + batch]
-            pitch_logits, yaw_logits = net(train.features[rows])
-            loss = F.cross_entropy(pitch_logits, y_pitch[rows]) + F.cross_entropy(yaw_logits, y_yaw[rows])
+            pitch_logits, yaw_logits, near_logit = net.outputs(train.features[rows])
+            on = near[rows]
+            loss = F.binary_cross_entropy_with_logits(near_logit, on.float()) if near_logit is not None else 0.0
+            if on.any():
+                loss = loss + F.cross_entropy(pitch_logits[on], y_pitch[rows][on]) + F.cross_entropy(yaw_logits[on], y_yaw[rows][on])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -133,12 +172,17 @@ def fit(train: Pairs, fov: float, size: int, epochs: int = 30, seed: int = 0, hi
 
 
 @torch.no_grad()
-def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float) -> dict[str, dict[str, float]]:
+def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float, min_near: float = 0.5) -> dict[str, dict[str, float]]:
     """Per corruption (``clean`` and each name in ``pairs``): ``stay``, the share of views on their target the
     refinement leaves alone, and ``one_off``, the share of views one degree off (on one axis or both) whose first
     move goes towards the target, with the refinement's rule (move while P(on target) < ``min_stay``, on the axis
-    with the larger predicted offset, yaw on ties)."""
+    with the larger predicted offset, yaw on ties). With the near output: ``keep``, the share of views at most 2
+    degrees off on each axis whose P(near) is at least ``min_near`` (a stop there is kept), and ``refuse``, the
+    share of far views below it (a stop there is refused)."""
     move_pitch, move_yaw = move_towards(*net.read(pairs.features), min_stay)
+    near_logit = net.outputs(pairs.features)[2]
+    kept = torch.sigmoid(near_logit) >= min_near if near_logit is not None else None
+    close = (pairs.dpitch.abs() <= 2) & (pairs.dyaw.abs() <= 2)
     stay = (move_pitch == 0) & (move_yaw == 0)
     right_way = torch.where(move_yaw != 0, move_yaw == -pairs.dyaw.sign(), move_pitch == -pairs.dpitch.sign())
     on = (pairs.dpitch == 0) & (pairs.dyaw == 0)
@@ -155,4 +199,8 @@ def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float) -> dict[str, dic
             "one_off": float((~stay & right_way)[b].float().mean()) if b.any() else float("nan"),
             "pairs": int(rows.sum()),
         }
+        if kept is not None:
+            c_rows, f_rows = rows & close, rows & ~pairs.near
+            out[name]["keep"] = float(kept[c_rows].float().mean()) if c_rows.any() else float("nan")
+            out[name]["refuse"] = float((~kept[f_rows]).float().mean()) if f_rows.any() else float("nan")
     return out
