@@ -292,9 +292,9 @@ class PPOAgentConfig:
     refine_min_near: Optional[float] = None
     """With ``refine_model`` (a net with the near output, tools/train_stop_offsets.py ``--far-fraction`` > 0): a STOP
     of the policy whose view the net gives a probability of being near the target (within 3 degrees on each axis)
-    below this is refused, as ``stop_min_prob`` refuses one: the slot takes its most likely move and searches on,
-    and with ``stop_by`` that view no longer counts as stop-like. A stop on a look-alike part of the panorama then
-    does not end the episode. null = off."""
+    below this is refused, as ``stop_min_prob`` refuses one: the slot takes its most likely move and searches on.
+    With ``stop_by`` a view becomes the most stop-like pose (the walk's goal) only if the net finds it near. A stop
+    on a look-alike part of the panorama then does not end the episode. null = off."""
     stop_prob: Optional[float] = None
     """At evaluation (as ``refine_stop``): STOP whenever the policy gives STOP at least this probability, even when a
     move has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""

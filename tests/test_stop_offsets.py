@@ -187,7 +187,8 @@ def test_agent_searches_on_from_a_stop_the_net_refuses() -> None:
     """A policy fixed at P = (0.1, 0.05, 0.15, 0.2, 0.5) for (UP, DOWN, LEFT, RIGHT, STOP) stops at once; with a
     net that finds every view far and ``min_near`` the stop is refused for its most likely move, RIGHT, and with
     ``stop_by`` the agent never walks back to a refused view (none counts as stop-like), so it never stops; with
-    a net that finds the view near, the stop stands."""
+    a net that finds the view near, the stop stands. A policy that never answers STOP walks back and stops by T
+    only where the net finds the view near."""
     from findview.episode import Episode
     from findview_baselines.agents.ppo_agent import PPOAgent
     from findview_baselines.rl.policy import Policy
@@ -209,6 +210,12 @@ def test_agent_searches_on_from_a_stop_the_net_refuses() -> None:
     assert actions(1, near=False) == [RIGHT]
     walked = actions(30, near=False, revisit_penalty=16.0, stop_by=30)
     assert STOP not in walked
+    # a policy that never says STOP (0.3 < RIGHT's 0.4) walks back to its most stop-like view by T = 30 only if
+    # the net finds a view near
+    with torch.no_grad():
+        policy.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.1, 0.1, 0.4, 0.3])))
+    assert STOP in actions(30, near=True, revisit_penalty=16.0, stop_by=30)
+    assert STOP not in actions(30, near=False, revisit_penalty=16.0, stop_by=30)
 
 
 def test_files_round_trip_and_bad_files_are_named(trained, tmp_path) -> None:

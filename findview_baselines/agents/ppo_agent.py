@@ -15,8 +15,8 @@
 - ``refine_stop=true`` checks each stop: when phase correlation measures the target at least half a degree
   away, the agent moves towards it first (:mod:`findview_baselines.agents.stop_refine`). A refiner with a
   stop-offset net and ``min_near`` also refuses a policy STOP whose view the net finds far from the target: the
-  slot takes its most likely move instead (greedy, also with ``sample``), and with ``stop_by`` that view does not
-  count as stop-like.
+  slot takes its most likely move instead (greedy, also with ``sample``). With ``stop_by`` a view becomes the
+  slot's most stop-like pose only if the net finds it near, so the walk back never ends on a refused view.
 - ``revisit_penalty > 0`` switches on a search memory (:class:`~findview_baselines.rl.search_memory.RevisitPenalty`):
   each move's logit is lowered by that many logit units per earlier visit of the pose it leads to (poses
   dead-reckoned from the agent's own actions), which breaks left/right loops. 0 (the default) is the plain policy.
@@ -383,17 +383,8 @@ class PPOAgent(Agent):
         if self.stop_prob is not None:  # the policy's own STOP probability, before the search memory
             a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
         stop_like = dist.probs[:, STOP]
-        if self.refiner is not None and self.refiner.min_near is not None:  # a STOP on a view far from the target
-            asks = torch.nonzero(a_t == STOP).flatten()
-            if len(asks):
-                at = idx[asks]
-                refused = asks[self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])]
-                if len(refused):  # its most likely move instead; that view no longer counts as stop-like
-                    moves = logits[refused].clone()
-                    moves[:, STOP] = float("-inf")
-                    a_t, stop_like = a_t.clone(), stop_like.clone()
-                    a_t[refused] = moves.argmax(dim=-1)
-                    stop_like[refused] = 0.0
+        if self.refiner is not None and self.refiner.min_near is not None:
+            a_t, stop_like = self._refuse_far(idx, a_t, logits, stop_like, rendered)
         if self.give_up is not None:  # remember the most stop-like pose; walk back to it when the steps left are just enough
             pitch, yaw = self.revisits.pitch[idx], self.revisits.yaw[idx]
             if self.give_up.phase:
@@ -405,6 +396,31 @@ class PPOAgent(Agent):
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t
+
+
+    def _refuse_far(self, idx: torch.Tensor, a_t: torch.Tensor, logits: torch.Tensor, stop_like: torch.Tensor,
+                    rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The stop check of ``min_near``: for the slots ``idx`` whose action ``a_t`` is STOP, or (with ``stop_by``)
+        whose STOP probability ``stop_like`` would become their most stop-like pose, ask the refiner's net whether the
+        view is near the target. A refused STOP becomes the most likely move of ``logits``; a refused view's
+        ``stop_like`` becomes 0, so the walk of ``stop_by`` never goes back to it. Returns the new ``(a_t,
+        stop_like)``."""
+        check = a_t == STOP
+        if self.give_up is not None:
+            check = check | ((stop_like > self.give_up.best[idx]) & (stop_like >= self.give_up.min_prob))
+        rows = torch.nonzero(check).flatten()
+        if not len(rows):
+            return a_t, stop_like
+        at = idx[rows]
+        refused = rows[self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])]
+        if not len(refused):
+            return a_t, stop_like
+        moves = logits[refused].clone()
+        moves[:, STOP] = float("-inf")
+        a_t, stop_like = a_t.clone(), stop_like.clone()
+        a_t[refused] = torch.where(a_t[refused] == STOP, moves.argmax(dim=-1), a_t[refused])
+        stop_like[refused] = 0.0
+        return a_t, stop_like
 
 
 def _refiner(cfg: "PPOAgentConfig", num_envs: int, width: int | None) -> StopRefiner:
