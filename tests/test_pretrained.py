@@ -49,3 +49,5 @@ def test_shipped_stop_offsets_are_small_documented_and_answer(path: Path) -> Non
     dpitch, dyaw, stay = net.offsets(views, views)
     assert bool((stay > 0.5).all()), "a view identical to its target should be left alone"
     assert dpitch.tolist() == [0, 0] and dyaw.tolist() == [0, 0]
+    if net.near:  # a file with the near output (agent.refine_min_near) keeps a stop on the target itself
+        assert bool((net.near_prob(views, views) > 0.5).all()), "a view identical to its target should be near it"
