@@ -397,7 +397,6 @@ class PPOAgent(Agent):
             self.revisits.moved(idx, a_t)
         return a_t
 
-
     def _refuse_far(self, idx: torch.Tensor, a_t: torch.Tensor, logits: torch.Tensor, stop_like: torch.Tensor,
                     rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """The stop check of ``min_near``: for the slots ``idx`` whose action ``a_t`` is STOP, or (with ``stop_by``)

@@ -219,7 +219,8 @@ def save_stop_offsets(path: str | os.PathLike, net: StopOffsetNet, meta: dict) -
     accuracy) to ``path`` atomically; loads with ``torch.load(..., weights_only=True)``."""
     state = {
         "format": _FORMAT, "version": _VERSION, "fov": net.fov, "size": net.size, "hidden": net.hidden,
-        "near": net.near, "features": FEATURES, "net": {k: v.detach().cpu() for k, v in net.state_dict().items()}, "meta": dict(meta),
+        "near": net.near, "features": FEATURES, "net": {k: v.detach().cpu() for k, v in net.state_dict().items()},
+        "meta": dict(meta),
     }
     return atomic_write(path, lambda tmp: torch.save(state, tmp))
 

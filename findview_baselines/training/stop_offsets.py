@@ -4,9 +4,9 @@ A pair is a target rendered at a random pose of a panorama (pitch -50..50, yaw -
 robust agents train (each corruption equally likely, severity 1-5; a ``clean_fraction`` left clean), and a view
 rendered ``(dpitch, dyaw)`` degrees from it: each axis 0 with probability 0.4, else +-1, +-2 or +-3 equally. The
 label is the offset per axis, clipped to -2..2. With ``far_fraction`` some views are put far from their target
-instead (half anywhere on the panorama, half 4-30 degrees off on one axis and up to 30 on the other): the negatives of the net's near output
-(a view within :data:`~findview_baselines.agents.stop_offsets.NEAR_DEGREES` on both axes is near). Only the features of a pair are kept (:func:`pair_features`), so
-memory grows by about 3 KB a pair.
+instead (half anywhere on the panorama, half 4-30 degrees off on one axis and up to 30 on the other): the negatives
+of the net's near output (a view within :data:`~findview_baselines.agents.stop_offsets.NEAR_DEGREES` on both axes
+is near). Only the features of a pair are kept (:func:`pair_features`), so memory grows by about 3 KB a pair.
 
 :func:`sample_pairs` makes them, :func:`fit` trains the MLP (Adam, cosine learning rate, cross-entropy of both axes)
 and :func:`accuracy` reports what the refinement needs: how often a view on its target is left alone, and how often
@@ -25,7 +25,13 @@ from tqdm import tqdm
 
 from findview.corruptions import NAMES, corrupt
 from findview.sim.equi2pers import equi2pers
-from findview_baselines.agents.stop_offsets import FEATURES, NEAR_DEGREES, OFFSET_CLASSES, StopOffsetNet, pair_features
+from findview_baselines.agents.stop_offsets import (
+    FEATURES,
+    NEAR_DEGREES,
+    OFFSET_CLASSES,
+    StopOffsetNet,
+    pair_features,
+)
 from findview_baselines.agents.stop_refine import move_towards
 
 __all__ = ["Pairs", "sample_pairs", "fit", "accuracy"]
@@ -68,8 +74,8 @@ def _axis_offsets(rng: np.random.Generator, n: int) -> np.ndarray:
 def _far_offsets(seed: int, n: int, pitch: np.ndarray, yaw: np.ndarray, far_fraction: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which of ``n`` pairs get a far view, and its offsets ``(dpitch, dyaw)`` from the target (degrees, yaw wrapped
-    to -180..180): half at a uniform pose (pitch -60..60), half 4-30 degrees off on one axis and 0-30 on the other, either sign. Drawn
-    from their own stream so that ``far_fraction=0`` leaves the near pairs as they were."""
+    to -180..180): half at a uniform pose (pitch -60..60), half 4-30 degrees off on one axis and 0-30 on the other,
+    either sign. Drawn from their own stream so that ``far_fraction=0`` leaves the near pairs as they were."""
     rng = np.random.default_rng([seed, 1])
     far = rng.random(n) < far_fraction
     anywhere = rng.random(n) < 0.5
@@ -163,7 +169,8 @@ def fit(train: Pairs, fov: float, size: int, epochs: int = 30, seed: int = 0, hi
             on = near[rows]
             loss = F.binary_cross_entropy_with_logits(near_logit, on.float()) if near_logit is not None else 0.0
             if on.any():
-                loss = loss + F.cross_entropy(pitch_logits[on], y_pitch[rows][on]) + F.cross_entropy(yaw_logits[on], y_yaw[rows][on])
+                loss = (loss + F.cross_entropy(pitch_logits[on], y_pitch[rows][on])
+                        + F.cross_entropy(yaw_logits[on], y_yaw[rows][on]))
             opt.zero_grad()
             loss.backward()
             opt.step()
