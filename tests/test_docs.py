@@ -114,6 +114,27 @@ def test_pip_install_is_checked_not_run():
     assert "no extra" in check_docs.check_pip("pip install 'findview[nosuchextra]'")
 
 
+def test_a_block_after_a_command_skipped_for_missing_data_is_skipped(tmp_path, monkeypatch):
+    """Without the sun360_mini panoramas the first command of a block is skipped, and so is the next one, which
+    reads what the first would have written (it would fail); a block of its own still runs."""
+    monkeypatch.delenv(check_docs.SUN360_ENV, raising=False)
+    markdown = "\n".join([
+        "```",
+        "python tools/train_stop_offsets.py --splits s/splits.json --root <sun360_mini> --out made.pth",
+        "python tools/average_checkpoints.py made.pth made.pth --out avg.pth",
+        "```",
+        "",
+        "```",
+        "python tools/average_checkpoints.py missing.pth --out avg.pth",
+        "```",
+    ])
+    commands = check_docs.extract(markdown, "x.md")
+    assert [c.block for c in commands] == [2, 2, 7]  # the first line inside each fence
+    results = check_docs.run_all(commands, tmp_path, ci=False, timeout=120)
+    assert [r.status for r in results] == ["skip", "skip", "FAIL"]
+    assert "earlier command of its block" in results[1].note
+
+
 def test_every_documented_command_runs(tmp_path):
     """Every command of README.md, docs/*.md and pretrained/README.md, with small overrides (tools/check_docs.py's
     OVERRIDES). benchmarks/RESULTS.md's commands are checked by ``python tools/check_docs.py benchmarks/RESULTS.md``

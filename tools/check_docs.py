@@ -166,6 +166,7 @@ class DocCommand:
     text: str  # as written (continuations joined, comment dropped)
     expect_error: Optional[str] = None  # console example: the error line it must print (exit 2)
     skip: Optional[str] = None  # reason from a skip marker
+    block: int = 0  # first line of its code block or paragraph: later commands of a block may need earlier ones
 
 
 def _strip_comment(line: str) -> str:
@@ -239,7 +240,7 @@ def _fenced(doc: str, block: list[tuple[int, str]], skip: Optional[str]) -> list
             expect = next((t for t in following if re.match(r"[\w.-]+: error: ", t)), None)
         for part in split_commands(_strip_comment(text)):
             if is_command(part):
-                out.append(DocCommand(doc, no, " ".join(part.split()), expect, skip))
+                out.append(DocCommand(doc, no, " ".join(part.split()), expect, skip, block[0][0] if block else 0))
     return out
 
 
@@ -254,7 +255,7 @@ def _inline(doc: str, para: list[tuple[int, str]], skip: Optional[str]) -> list[
         line = max(no for off, no in offsets if off <= m.start())
         for part in split_commands(m.group(1).replace("\n", " ")):
             if is_command(part):
-                out.append(DocCommand(doc, line, " ".join(part.split()), None, skip))
+                out.append(DocCommand(doc, line, " ".join(part.split()), None, skip, para[0][0] if para else 0))
     return out
 
 
@@ -411,6 +412,24 @@ def prepare(cmd: str, overrides: bool = True) -> str:
     return f"{cmd} {extra}".strip()
 
 
+def run_all(commands: list[DocCommand], cwd: Path, ci: bool, timeout: float, verbose: bool = False) -> list[Result]:
+    """:func:`run_one` for each command in order; a command whose block had an earlier command skipped for want of
+    its data (not a skip marker) is skipped too, since it may need what that one would have made."""
+    results: list[Result] = []
+    wanting: set[tuple[str, int]] = set()  # (doc, block) with a command skipped for missing data
+    for c in commands:
+        if not c.skip and (c.doc, c.block) in wanting:
+            r = Result(c, "skip", note="an earlier command of its block was skipped (missing data)")
+        else:
+            r = run_one(c, cwd, ci, timeout)
+            if r.status == "skip" and not c.skip:
+                wanting.add((c.doc, c.block))
+        results.append(r)
+        if verbose:
+            print(f"[{r.status} {r.seconds:5.1f}s] {c.doc}:{c.line}: {r.ran or c.text}", flush=True)
+    return results
+
+
 def run_one(c: DocCommand, cwd: Path, ci: bool, timeout: float) -> Result:
     if c.skip:
         return Result(c, "skip", note=f"marked: {c.skip}")
@@ -501,13 +520,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     if not (work / "pretrained").exists():
         (work / "pretrained").symlink_to(REPO / "pretrained", target_is_directory=True)
-    results: list[Result] = []
     try:
-        for c in commands:
-            r = run_one(c, work, ci, args.timeout)
-            results.append(r)
-            if args.verbose:
-                print(f"[{r.status} {r.seconds:5.1f}s] {c.doc}:{c.line}: {r.ran or c.text}", flush=True)
+        results = run_all(commands, work, ci, args.timeout, args.verbose)
     finally:
         if args.keep or args.workdir:
             print(f"working folder: {work}")
