@@ -11,9 +11,10 @@ rendered from the **train** panoramas of ``--splits`` (``--pairs`` of them, plus
 corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
 offset per axis (findview_baselines/agents/stop_offsets.py). A ``--far-fraction`` of the pairs (and of the val
 pairs) put the view elsewhere on the panorama instead, so that the net also learns whether a view is near its
-target at all (the near output ``agent.refine_min_near`` uses to refuse stops on look-alike views). ``--val-pairs`` pairs from the **val** panoramas
-report how often a view on its target is left alone and how often a view one degree off is sent the right way,
-and with the near output how often a view at most 2 degrees off is kept and a far one refused, per corruption (the
+target at all (the near output ``agent.refine_min_near`` uses to refuse stops on look-alike views).
+``--val-pairs`` pairs from the **val** panoramas report how often a view on its target is left alone and how often
+a view one degree off is sent the right way, and with the near output how often a view at most 2 degrees off is
+kept and a far one refused, per corruption (the
 ``stay`` / ``one_off`` / ``keep`` / ``refuse`` of findview_baselines/training/stop_offsets.py, ``accuracy``); they
 are stored in the file with the command's settings. The file is written atomically; an existing ``--out`` is
 replaced only with ``--overwrite``. Bad input prints one line and exits with status 2.
@@ -64,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--val-pairs", type=int, default=3000, help="val pairs for the report (default 3000)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--min-stay", type=float, default=0.3, help="the refinement's threshold the report uses (agent.refine_min_stay)")
-    p.add_argument("--min-near", type=float, default=0.5, help="the stop check's threshold the report uses (agent.refine_min_near)")
+    p.add_argument("--min-near", type=float, default=0.5,
+                   help="the stop check's threshold the report uses (agent.refine_min_near)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")

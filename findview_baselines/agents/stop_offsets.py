@@ -188,7 +188,11 @@ class StopOffsetNet(nn.Module):
     def read(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """:func:`pair_features` rows ``(B, FEATURES)`` -> the most likely ``dpitch``, ``dyaw`` (``(B,)`` long, degrees,
         the view's offset from the target, -2..2) and the probability of no offset on either axis (``(B,)``)."""
-        pitch_logits, yaw_logits = self(features)
+        return self.reading(*self(features))
+
+    @staticmethod
+    def reading(pitch_logits: torch.Tensor, yaw_logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`read` from the offset logits ``(B, 5)`` each (of :meth:`outputs`)."""
         p_pitch, p_yaw = pitch_logits.softmax(dim=1), yaw_logits.softmax(dim=1)
         return p_pitch.argmax(dim=1) - _MID, p_yaw.argmax(dim=1) - _MID, p_pitch[:, _MID] * p_yaw[:, _MID]
 

@@ -186,8 +186,8 @@ def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float, min_near: float 
     with the larger predicted offset, yaw on ties). With the near output: ``keep``, the share of views at most 2
     degrees off on each axis whose P(near) is at least ``min_near`` (a stop there is kept), and ``refuse``, the
     share of far views below it (a stop there is refused)."""
-    move_pitch, move_yaw = move_towards(*net.read(pairs.features), min_stay)
-    near_logit = net.outputs(pairs.features)[2]
+    pitch_logits, yaw_logits, near_logit = net.outputs(pairs.features)  # one pass for the offsets and the near output
+    move_pitch, move_yaw = move_towards(*net.reading(pitch_logits, yaw_logits), min_stay)
     kept = torch.sigmoid(near_logit) >= min_near if near_logit is not None else None
     close = (pairs.dpitch.abs() <= 2) & (pairs.dyaw.abs() <= 2)
     stay = (move_pitch == 0) & (move_yaw == 0)
