@@ -251,6 +251,14 @@ class PPOAgentConfig:
     revisit_row_stride: int = 0
     """With the search memory on: once the agent has looked around a full turn near its row, it moves to the next
     search row, this many 1-step moves above / below its start (alternately: +s, -s, +2s, -2s, ...). 0 = off."""
+    revisit_row_after: int = 0
+    """With ``revisit_row_stride``: the row search acts from this step of an episode on (0: from its first step).
+    Before it the policy searches alone; an episode still searching then is taken through the search rows, a
+    safety net under a learned search (findview_baselines/rl/search_memory.py, "Row search")."""
+    revisit_row_budget: int = 0
+    """With ``revisit_row_stride``: steps at one search row after which the row search moves on to the next even if
+    that row is not looked around (a learned agent unsure which row is next can zigzag up and down a column at a
+    time and never finish one). 0 = no limit."""
     revisit_near_rows: int = 0
     """With the search memory on: a move also pays ``revisit_near_penalty`` per visit of the most visited cell near
     its destination (a yaw move: its column within this many rows; a pitch move: its column up to this many rows
@@ -340,6 +348,9 @@ class PPOAgentConfig:
         )
         check(self.fine_scales >= 1, "agent.fine_scales", self.fine_scales, "a positive number of pyramid levels")
         check(self.revisit_row_stride >= 0, "agent.revisit_row_stride", self.revisit_row_stride, "0 (off) or a number of steps")
+        # (that they need the row search is checked where it is built: the stride may come from a checkpoint's run)
+        check(self.revisit_row_after >= 0, "agent.revisit_row_after", self.revisit_row_after, "0 or a number of steps")
+        check(self.revisit_row_budget >= 0, "agent.revisit_row_budget", self.revisit_row_budget, "0 or a number of steps")
         check(self.revisit_near_rows >= 0, "agent.revisit_near_rows", self.revisit_near_rows, "0 (off) or a number of rows")
         check(self.revisit_near_penalty > 0, "agent.revisit_near_penalty", self.revisit_near_penalty, "a positive number of logit units")
         check(self.revisit_near_age >= 1, "agent.revisit_near_age", self.revisit_near_age, "a number of steps >= 1")

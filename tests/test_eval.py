@@ -497,6 +497,10 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *near), near), 2,
                            torch.device("cpu"))[0].revisits
     assert (revisits.near.rows, revisits.near.penalty, revisits.near.age) == (16, 2.5, 7)
+    rows = ["agent.revisit_row_after=1000", "agent.revisit_row_budget=720"]  # with the run's stride 30
+    revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *rows), rows), 2,
+                           torch.device("cpu"))[0].revisits
+    assert (revisits.row_stride, revisits.row_after, revisits.row_budget) == (30, 1000, 720)
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy

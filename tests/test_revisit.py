@@ -138,10 +138,10 @@ def test_ppo_agent_refuses_a_negative_penalty():
         PPOAgent(Policy(64, 64, "early_fusion", hidden_size=8), 1, revisit_penalty=-1.0)
 
 
-def row_walk(steps: int, pitch_limit: int) -> tuple[list[int], RevisitPenalty]:
+def row_walk(steps: int, pitch_limit: int, row_after: int = 0) -> tuple[list[int], RevisitPenalty]:
     """An agent that always prefers RIGHT, on a 30-degree grid (12 yaw cells), memory penalty 1, row search with
     stride 5 steps (rows +5, -5, then +10, beyond the 6-step pitch range: the search ends)."""
-    guard = RevisitPenalty(1, 1.0, step_deg=30, row_stride=5)
+    guard = RevisitPenalty(1, 1.0, step_deg=30, row_stride=5, row_after=row_after)
     assert guard.yaw_cells == 12 and guard.cover_cells == 11 and guard.max_pitch == 6
     idx, pitch, yaw, actions = torch.tensor([0]), 0, 0, []
     for _ in range(steps):
@@ -175,6 +175,58 @@ def test_row_search_skips_a_row_beyond_the_pitch_limit():
     assert actions[10:14] == [UP] * 4
     assert actions[14:21] == [DOWN] * 7 and actions[21] == RIGHT
     assert int(guard.row_k[0]) == 3 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -3
+
+
+def test_row_search_after_a_step_leaves_the_policy_alone_until_then():
+    # the row is looked around at the 11th arrival, but nothing is forced before step 16 (row_after 15): the policy
+    # turns on (RIGHT 5 against 1 per earlier visit), then 5 forced UPs to row +5 and the walk of the test above
+    actions, guard = row_walk(21, pitch_limit=90, row_after=15)
+    assert actions[:15] == [RIGHT] * 15
+    assert actions[15:20] == [UP] * 5 and actions[20] == RIGHT
+    assert int(guard.row_k[0]) == 1 and int(guard.row_started[0]) == 16
+
+
+def zigzag_walk(steps: int, row_budget: int) -> tuple[list[int], RevisitPenalty]:
+    """On the 1-degree grid (360 yaw cells), a policy that zigzags: UP to pitch 3 in even columns, DOWN to 0 in odd
+    ones, one RIGHT at each end (each preferred by 5 logits; every cell it visits is new, so the memory never
+    charges it). Row search with stride 10 and a budget of ``row_budget`` steps per row (0: none)."""
+    guard = RevisitPenalty(1, 1.0, row_stride=10, row_budget=row_budget)
+    idx, pitch, yaw, actions = torch.tensor([0]), 0, 0, []
+    for _ in range(steps):
+        logits = torch.tensor([[0.0, 0.0, 0.0, 0.0, -9.0]])
+        if yaw % 2 == 0:
+            logits[0, UP if pitch < 3 else RIGHT] = 5.0
+        else:
+            logits[0, DOWN if pitch > 0 else RIGHT] = 5.0
+        a = int(guard.adjust(idx, pose_view(pitch, yaw)[None], logits).argmax(dim=-1))
+        guard.moved(idx, torch.tensor([a]))
+        actions.append(a)
+        pitch += {UP: 1, DOWN: -1}.get(a, 0)
+        yaw += {RIGHT: 1, LEFT: -1}.get(a, 0)
+    return actions, guard
+
+
+def test_row_budget_moves_a_zigzag_that_never_finishes_a_row_on():
+    # the zigzag sees 1 new column per 4 steps: the band of rows -2..2 never holds 90% of 360 columns in 200
+    # steps, so without a budget the row search never acts and the pitch stays in 0..3
+    plain, guard = zigzag_walk(200, row_budget=0)
+    assert set(plain) == {UP, DOWN, RIGHT} and int(guard.row_k[0]) == 0
+    # budget 50: at the 51st arrival the row is given up, and UPs are forced from pitch p (0..3) to row +10; the
+    # forced run starts at step 51 whatever the policy prefers there
+    actions, guard = zigzag_walk(200, row_budget=50)
+    assert actions[:50] == plain[:50]
+    run = actions[50:].index(DOWN) if DOWN in actions[50:] else len(actions) - 50
+    assert run >= 7 and actions[50:50 + 7] == [UP] * 7
+    assert int(guard.row_k[0]) >= 1 and int(guard.row_started[0]) >= 51
+    # the budget runs from the row's choice: the next row (-10) is chosen 50 steps after the first, or once row +10
+    # is looked around, whichever comes first; the resume state keeps the step the row was chosen at
+    resumed = RevisitPenalty(1, 1.0, row_stride=10, row_budget=50)
+    resumed.load_state_dict(guard.state_dict())
+    assert int(resumed.row_started[0]) == int(guard.row_started[0]) and int(resumed.row_k[0]) == int(guard.row_k[0])
+    with pytest.raises(ValueError, match="row_after >= 0 and row_budget >= 0"):
+        RevisitPenalty(1, 1.0, row_stride=10, row_budget=-1)
+    with pytest.raises(ValueError, match="need a row search"):  # no stride: nothing to start late or give up
+        RevisitPenalty(1, 1.0, row_after=1000)
 
 
 def test_stop_prob_stops_on_the_policys_own_stop_probability():

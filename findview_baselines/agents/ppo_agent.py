@@ -93,6 +93,8 @@ class PPOAgent(Agent):
             moves up or down (alternately, growing); 0: off.
         revisit_near: with the memory on, its near visits (:class:`~findview_baselines.rl.search_memory.NearVisits`;
             the default: off).
+        revisit_row_after, revisit_row_budget: with the row search, the step from which it acts and the most steps
+            at one search row (0: from the start; no limit; see :mod:`findview_baselines.rl.search_memory`).
         refiner: a :class:`~findview_baselines.agents.stop_refine.StopRefiner` for the final refinement of the
             policy's stops (``None``: the policy's stops stand).
         stop_prob: STOP whenever the policy gives STOP at least this probability, even when a move has more
@@ -126,6 +128,8 @@ class PPOAgent(Agent):
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
+        revisit_row_after: int = 0,
+        revisit_row_budget: int = 0,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -144,7 +148,7 @@ class PPOAgent(Agent):
         self._fallback = np.random.default_rng(self.seed)
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
         self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_row_stride,
-                                             revisit_near)
+                                             revisit_near, revisit_row_after, revisit_row_budget)
         self.refiner = refiner
         self.memory_band = 0  # rows of the search memory's band, when the network reads the memory
         if getattr(policy, "memory_inputs", 0):
@@ -192,6 +196,8 @@ class PPOAgent(Agent):
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
+        revisit_row_after: int = 0,
+        revisit_row_budget: int = 0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -239,7 +245,7 @@ class PPOAgent(Agent):
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov,
-            stop_by, stop_min_prob, stop_by_phase, revisit_near,
+            stop_by, stop_min_prob, stop_by_phase, revisit_near, revisit_row_after, revisit_row_budget,
         )
 
     @classmethod
@@ -265,7 +271,8 @@ class PPOAgent(Agent):
             revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
             refiner=_refiner(cfg, num_envs, width) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
-            stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg),
+            stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), revisit_row_after=cfg.revisit_row_after,
+            revisit_row_budget=cfg.revisit_row_budget,
         )
 
     # acting --------------------------------------------------------------------------------------

@@ -54,7 +54,8 @@ EpisodeToolConfig = Union[EvalConfig, RenderEpisodeConfig, RenderCorruptionsConf
 #: the keys of a learned agent's checkpoint signature that are fields of its agent config (the model)
 _MODEL_KEYS = ("variant", "hidden_size", "fine_shifts", "fine_scales")
 #: the learned agent's search-memory settings (a training run records the ones it validated with)
-_SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride", "revisit_near_rows", "revisit_near_penalty", "revisit_near_age")
+_SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride", "revisit_row_after", "revisit_row_budget", "revisit_near_rows",
+                "revisit_near_penalty", "revisit_near_age")
 
 
 class EvalError(UserError):
@@ -216,7 +217,7 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     an integer multiple of its network's with ``agent.downsample``) unless given on the command line
     (or a ``sim=`` preset was chosen), and ``agent.fov`` follows ``sim.fov`` unless given; ``agent`` becomes a learned-agent config with the checkpoint's model
     (keeping ``agent.sample`` when the learned agent was chosen); the search memory (``agent.revisit_penalty``,
-    ``agent.revisit_row_stride``, ``agent.revisit_near_*``) is the command line's, else the training run's, else the
+    ``agent.revisit_row_*``, ``agent.revisit_near_*``) is the command line's, else the training run's, else the
     schema's. ``cfg`` itself is not changed.
 
     Raises:

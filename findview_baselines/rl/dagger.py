@@ -174,6 +174,8 @@ class DAggerTrainer(Trainer):
         revisit_penalty: float = 0.0,
         revisit_row_stride: int = 0,
         revisit_near: NearVisits = NearVisits(),
+        revisit_row_after: int = 0,
+        revisit_row_budget: int = 0,
     ) -> None:
         super().__init__(env, policy, cfg, total_updates, scheduler, set_level)
         self.aux_head: AuxHead | None = AuxHead(policy.feature_size).to(self.device) if cfg.aux_coef > 0 else None
@@ -199,7 +201,8 @@ class DAggerTrainer(Trainer):
         self.hidden = policy.initial_hidden(n, dev)
         self.masks = torch.zeros(n, device=dev)
         # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
-        self.revisits = make_revisit_penalty(n, dev, revisit_penalty, revisit_row_stride, revisit_near)
+        self.revisits = make_revisit_penalty(n, dev, revisit_penalty, revisit_row_stride, revisit_near,
+                                             revisit_row_after, revisit_row_budget)
         self._all_slots = torch.arange(n, device=dev)
         # a policy that reads its search memory (memory_inputs): the memory's row band, half a FoV
         self.memory_band = 0

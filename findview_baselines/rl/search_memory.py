@@ -35,6 +35,14 @@ replaced by pitch moves to the next search row, at offsets ``+s, -s, +2s, -2s, .
 the policy acts again. A forced move that is blocked (the pitch limit) skips to the next row; rows beyond
 ``max_pitch_steps`` end the search. ``STOP`` still wins wherever it is the policy's argmax.
 
+Two settings make the row search a **safety net** for a learned search. ``row_after = a`` (steps): the rows are
+forced only from the ``a``-th step of an episode on; before it the policy searches alone, so the episodes it
+finishes in time are untouched. ``row_budget = b`` (steps): once the search has chosen a row (or, for the first, once
+it starts), it moves on to the next after ``b`` steps even if the band is not looked around. A learned agent unsure
+which row to search next can zigzag up and down, one yaw column per pass, or pace between two rows it has looked
+around (each of them a row of visited cells that costs ``penalty`` to step into): every cell it visits is new, no
+band ever fills, and without a budget the search never takes it anywhere else.
+
 Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at
 1 degree) on the policy's device, beside a running per-column count of the seen cells below each row (the same
 size), so the band sums of :meth:`RevisitPenalty.memory_features` are a few gathers, not a pass over the grid (with
@@ -91,10 +99,10 @@ class NearVisits:
 
 def make_revisit_penalty(
     num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0,
-    near: NearVisits = NearVisits(),
+    near: NearVisits = NearVisits(), revisit_row_after: int = 0, revisit_row_budget: int = 0,
 ) -> "RevisitPenalty | None":
     """The search memory of ``num_envs`` slots, or ``None`` when ``revisit_penalty`` is 0 (off); ``near``: its near
-    visits (:class:`NearVisits`).
+    visits (:class:`NearVisits`); ``revisit_row_*``: its row search (:class:`RevisitPenalty`'s ``row_*``).
 
     Raises:
         ValueError: a negative or NaN penalty, a negative stride, or bad near-visit settings.
@@ -104,7 +112,8 @@ def make_revisit_penalty(
         raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
     if penalty == 0:
         return None
-    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride), near=near)
+    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride), near=near,
+                          row_after=int(revisit_row_after), row_budget=int(revisit_row_budget))
 
 #: (pitch, yaw) grid steps of UP, DOWN, LEFT, RIGHT (STOP does not move)
 _MOVES = ((1, 0), (-1, 0), (0, -1), (0, 1))
@@ -122,18 +131,26 @@ class RevisitPenalty:
             (180 degrees covers any start and target).
         row_stride: row search stride in steps (0: off; see the module docstring).
         row_cover: share of a full turn of yaw cells seen near the current row that ends it (0 < x <= 1).
+        row_after: the step of an episode from which the row search acts (0: from its first step).
+        row_budget: steps at one search row after which the search moves on though the row is not looked around
+            (0: no limit; see the module docstring).
         near: the near visits a move also pays for (:class:`NearVisits`; the default: off; see the module docstring).
     """
 
     def __init__(
         self, num_envs: int, penalty: float, device: str | torch.device = "cpu", step_deg: int = 1,
         max_pitch_steps: int | None = None, row_stride: int = 0, row_cover: float = 0.9,
-        near: NearVisits = NearVisits(),
+        near: NearVisits = NearVisits(), row_after: int = 0, row_budget: int = 0,
     ) -> None:
         if not penalty > 0:
             raise ValueError(f"revisit penalty must be > 0 logit units per visit, got {penalty}")
         if int(row_stride) < 0 or not 0.0 < float(row_cover) <= 1.0:
             raise ValueError(f"row search: need row_stride >= 0 steps and 0 < row_cover <= 1, got {row_stride}, {row_cover}")
+        if int(row_after) < 0 or int(row_budget) < 0:
+            raise ValueError(f"row search: need row_after >= 0 and row_budget >= 0 steps, got {row_after}, {row_budget}")
+        if (int(row_after) or int(row_budget)) and not int(row_stride):
+            raise ValueError(f"row search: row_after={row_after} and row_budget={row_budget} steps need a row search "
+                             f"(agent.revisit_row_stride > 0), got row_stride=0")
         if int(step_deg) < 1 or 360 % int(step_deg):
             raise ValueError(f"step_deg must be a positive divisor of 360, got {step_deg}")
         self.penalty = float(penalty)
@@ -166,6 +183,9 @@ class RevisitPenalty:
         self.row_k = torch.zeros(n, dtype=torch.long, device=self.device)  # index of the current search row
         self.row_target = torch.zeros(n, dtype=torch.long, device=self.device)  # its pitch offset, steps
         self.row_seek = torch.zeros(n, dtype=torch.bool, device=self.device)  # on the way to it
+        self.row_after = int(row_after)
+        self.row_budget = int(row_budget)
+        self.row_started = torch.zeros(n, dtype=torch.int32, device=self.device)  # clock when the row was chosen
         self.last_blocked = torch.zeros(n, dtype=torch.bool, device=self.device)
 
     def reset(self, env_ids: torch.Tensor) -> None:
@@ -181,6 +201,7 @@ class RevisitPenalty:
         self.row_k[ids] = 0
         self.row_target[ids] = 0
         self.row_seek[ids] = False
+        self.row_started[ids] = 0
         self.last_blocked[ids] = False
 
     def mark_row_seen(self, env_ids: torch.Tensor) -> None:
@@ -309,22 +330,29 @@ class RevisitPenalty:
         return torch.stack(columns, dim=1)
 
     def _row_search(self, idx: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
-        """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn, force pitch
-        moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the start, ``s = row_stride``); a
-        forced move that is blocked (the pitch limit) skips to the next row. Edits ``out`` (K, 5) in place."""
+        """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn (or the row's
+        ``row_budget`` is spent), force pitch moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the
+        start, ``s = row_stride``); a forced move that is blocked (the pitch limit) skips to the next row. Nothing
+        is forced before step ``row_after``. Edits ``out`` (K, 5) in place."""
         band = (rows[:, None] + torch.arange(-2, 3, device=self.device)[None]).clamp(0, 2 * self.max_pitch)  # (K, 5)
         coverage = (self.visits[idx[:, None], band] > 0).any(dim=1).sum(dim=-1)  # (K,) yaw cells seen in the band
         seek = self.row_seek[idx]
         pitch = self.pitch[idx]
         blocked = seek & self.last_blocked[idx]
         seek = seek & (pitch != self.row_target[idx])  # arrived
-        advance = blocked | (~seek & (coverage >= self.cover_cells))
+        clock = self.clock[idx]
+        done = coverage >= self.cover_cells
+        if self.row_budget > 0:  # steps since the row was chosen (or since the search started)
+            done = done | (clock - self.row_started[idx].clamp(min=self.row_after) > self.row_budget)
+        live = clock > self.row_after
+        advance = live & (blocked | (~seek & done))
         k = self.row_k[idx] + advance.long()
         m = (k + 1) // 2
         target = torch.where(k % 2 == 1, m, -m) * self.row_stride
         target = torch.where(advance, target, self.row_target[idx])
         seek = (seek | advance) & (target.abs() <= self.max_pitch)
         self.row_k[idx] = k
+        self.row_started[idx] = torch.where(advance, clock, self.row_started[idx])
         self.row_target[idx] = target
         self.row_seek[idx] = seek
         toward = torch.where(target > pitch, 0, 1)  # UP raises the pitch offset, DOWN lowers it
@@ -366,7 +394,8 @@ class RevisitPenalty:
             "yaw": self.yaw.cpu().clone(),
             "last_move": self.last_move.cpu().clone(),
             "last_view": None if self.last_view is None else self.last_view.cpu().clone(),
-            "row": torch.stack([self.row_k, self.row_target, self.row_seek.long(), self.last_blocked.long()]).cpu(),
+            "row": torch.stack([self.row_k, self.row_target, self.row_seek.long(), self.last_blocked.long(),
+                                self.row_started.long()]).cpu(),
             "last_visit": self.last_visit.cpu().clone(),
             "clock": self.clock.cpu().clone(),
         }
@@ -389,6 +418,7 @@ class RevisitPenalty:
             self.row_target.copy_(row[1])
             self.row_seek.copy_(row[2].bool())
             self.last_blocked.copy_(row[3].bool())
+            self.row_started.copy_(row[4] if row.shape[0] > 4 else torch.zeros_like(row[0]))  # saved before row budgets
         last = state.get("last_view")
         self.last_view = None if last is None else last.to(self.device).clone()
         if self.near_rows:  # the ages of the restored visits: a state saved without near visits has none

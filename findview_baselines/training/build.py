@@ -94,7 +94,8 @@ def make_trainer(cfg: TrainConfig, env: Any, policy: Policy, scheduler: Difficul
 
         return DAggerTrainer(env, policy, t.dagger, t.num_updates, scheduler, set_level, seed=seed,
                              revisit_penalty=agent.revisit_penalty, revisit_row_stride=agent.revisit_row_stride,
-                             revisit_near=NearVisits.of(agent))
+                             revisit_near=NearVisits.of(agent), revisit_row_after=agent.revisit_row_after,
+                             revisit_row_budget=agent.revisit_row_budget)
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
     if agent.memory_inputs:
@@ -160,4 +161,5 @@ def make_val_agent(agent: PPOAgentConfig, policy: Policy, num_envs: int, seed: i
 
     return PPOAgent(policy, num_envs, next(policy.parameters()).device, seed, sample=agent.sample,
                     revisit_penalty=agent.revisit_penalty, revisit_row_stride=agent.revisit_row_stride, fov=agent.fov,
-                    revisit_near=NearVisits.of(agent))
+                    revisit_near=NearVisits.of(agent), revisit_row_after=agent.revisit_row_after,
+                    revisit_row_budget=agent.revisit_row_budget)
