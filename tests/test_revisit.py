@@ -223,6 +223,7 @@ def test_row_budget_moves_a_zigzag_that_never_finishes_a_row_on():
     resumed = RevisitPenalty(1, 1.0, row_stride=10, row_budget=50)
     resumed.load_state_dict(guard.state_dict())
     assert int(resumed.row_started[0]) == int(guard.row_started[0]) and int(resumed.row_k[0]) == int(guard.row_k[0])
+    assert int(resumed.clock[0]) == int(guard.clock[0]) == 200  # the budget counts on from where it was
     with pytest.raises(ValueError, match="row_after >= 0 and row_budget >= 0"):
         RevisitPenalty(1, 1.0, row_stride=10, row_budget=-1)
     with pytest.raises(ValueError, match="need a row search"):  # no stride: nothing to start late or give up

@@ -421,6 +421,8 @@ class RevisitPenalty:
             self.row_started.copy_(row[4] if row.shape[0] > 4 else torch.zeros_like(row[0]))  # saved before row budgets
         last = state.get("last_view")
         self.last_view = None if last is None else last.to(self.device).clone()
+        if state.get("clock") is not None:  # the steps since each reset (near-visit ages, the row search's start)
+            self.clock.copy_(state["clock"])
         if self.near_rows:  # the ages of the restored visits: a state saved without near visits has none
             saved = state.get("last_visit")
             if saved is None or tuple(saved.shape) != tuple(self.last_visit.shape):
@@ -428,4 +430,3 @@ class RevisitPenalty:
                                  f"{None if saved is None else tuple(saved.shape)}); this memory counts them "
                                  f"({self.near}): resume with the near-visit settings it was saved with")
             self.last_visit.copy_(saved)
-            self.clock.copy_(state["clock"])
