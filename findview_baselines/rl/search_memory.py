@@ -105,7 +105,8 @@ def make_revisit_penalty(
     visits (:class:`NearVisits`); ``revisit_row_*``: its row search (:class:`RevisitPenalty`'s ``row_*``).
 
     Raises:
-        ValueError: a negative or NaN penalty, a negative stride, or bad near-visit settings.
+        ValueError: a negative or NaN penalty, a negative stride, bad near-visit settings, or a negative
+            ``revisit_row_after`` / ``revisit_row_budget``, or either without a row search (stride 0).
     """
     penalty = float(revisit_penalty)
     if penalty < 0 or penalty != penalty:
