@@ -488,10 +488,10 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
         return build_agent(cfg, 2, torch.device("cpu"))[0]
 
     assert agent_for(ckpt, [], None).revisits.penalty == 1.5  # the training run's setting
-    assert agent_for(ckpt, [], None).revisits.row_stride == 30
+    assert agent_for(ckpt, [], None).revisits.rows.stride == 30
     cfg = _eval_cfg("agent=ppo", f"checkpoint={ckpt}", "agent.revisit_row_stride=45")
     cfg = apply_checkpoint_config(cfg, ["agent.revisit_row_stride=45"])
-    assert build_agent(cfg, 2, torch.device("cpu"))[0].revisits.row_stride == 45  # the command line wins
+    assert build_agent(cfg, 2, torch.device("cpu"))[0].revisits.rows.stride == 45  # the command line wins
     assert agent_for(ckpt, [], None).revisits.near_rows == 0  # a run without the key: no near visits
     near = ["agent.revisit_near_rows=16", "agent.revisit_near_penalty=2.5", "agent.revisit_near_age=7"]
     revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *near), near), 2,
@@ -500,7 +500,7 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     rows = ["agent.revisit_row_after=1000", "agent.revisit_row_budget=720"]  # with the run's stride 30
     revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *rows), rows), 2,
                            torch.device("cpu"))[0].revisits
-    assert (revisits.row_stride, revisits.row_after, revisits.row_budget) == (30, 1000, 720)
+    assert (revisits.rows.stride, revisits.rows.after, revisits.rows.budget) == (30, 1000, 720)
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
-from findview_baselines.rl.search_memory import NearVisits, RevisitPenalty
+from findview_baselines.rl.search_memory import NearVisits, RevisitPenalty, RowSearch
 
 
 def pose_view(pitch: int, yaw: int) -> torch.Tensor:
@@ -141,7 +141,7 @@ def test_ppo_agent_refuses_a_negative_penalty():
 def row_walk(steps: int, pitch_limit: int, row_after: int = 0) -> tuple[list[int], RevisitPenalty]:
     """An agent that always prefers RIGHT, on a 30-degree grid (12 yaw cells), memory penalty 1, row search with
     stride 5 steps (rows +5, -5, then +10, beyond the 6-step pitch range: the search ends)."""
-    guard = RevisitPenalty(1, 1.0, step_deg=30, row_stride=5, row_after=row_after)
+    guard = RevisitPenalty(1, 1.0, step_deg=30, rows=RowSearch(stride=5, after=row_after))
     assert guard.yaw_cells == 12 and guard.cover_cells == 11 and guard.max_pitch == 6
     idx, pitch, yaw, actions = torch.tensor([0]), 0, 0, []
     for _ in range(steps):
@@ -190,7 +190,7 @@ def zigzag_walk(steps: int, row_budget: int) -> tuple[list[int], RevisitPenalty]
     """On the 1-degree grid (360 yaw cells), a policy that zigzags: UP to pitch 3 in even columns, DOWN to 0 in odd
     ones, one RIGHT at each end (each preferred by 5 logits; every cell it visits is new, so the memory never
     charges it). Row search with stride 10 and a budget of ``row_budget`` steps per row (0: none)."""
-    guard = RevisitPenalty(1, 1.0, row_stride=10, row_budget=row_budget)
+    guard = RevisitPenalty(1, 1.0, rows=RowSearch(stride=10, budget=row_budget))
     idx, pitch, yaw, actions = torch.tensor([0]), 0, 0, []
     for _ in range(steps):
         logits = torch.tensor([[0.0, 0.0, 0.0, 0.0, -9.0]])
@@ -220,14 +220,14 @@ def test_row_budget_moves_a_zigzag_that_never_finishes_a_row_on():
     assert int(guard.row_k[0]) >= 1 and int(guard.row_started[0]) >= 51
     # the budget runs from the row's choice: the next row (-10) is chosen 50 steps after the first, or once row +10
     # is looked around, whichever comes first; the resume state keeps the step the row was chosen at
-    resumed = RevisitPenalty(1, 1.0, row_stride=10, row_budget=50)
+    resumed = RevisitPenalty(1, 1.0, rows=RowSearch(stride=10, budget=50))
     resumed.load_state_dict(guard.state_dict())
     assert int(resumed.row_started[0]) == int(guard.row_started[0]) and int(resumed.row_k[0]) == int(guard.row_k[0])
     assert int(resumed.clock[0]) == int(guard.clock[0]) == 200  # the budget counts on from where it was
-    with pytest.raises(ValueError, match="row_after >= 0 and row_budget >= 0"):
-        RevisitPenalty(1, 1.0, row_stride=10, row_budget=-1)
+    with pytest.raises(ValueError, match="need stride, after and budget >= 0"):
+        RowSearch(stride=10, budget=-1)
     with pytest.raises(ValueError, match="need a row search"):  # no stride: nothing to start late or give up
-        RevisitPenalty(1, 1.0, row_after=1000)
+        RowSearch(after=1000)
 
 
 def test_stop_prob_stops_on_the_policys_own_stop_probability():

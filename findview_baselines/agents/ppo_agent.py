@@ -58,7 +58,7 @@ from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.give_up import GiveUp
 from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.observations import area_downsample, downsample_factor
-from findview_baselines.rl.search_memory import NearVisits, make_revisit_penalty, memory_band
+from findview_baselines.rl.search_memory import NearVisits, RowSearch, make_revisit_penalty, memory_band
 
 if TYPE_CHECKING:
     from torch.distributions import Categorical
@@ -89,12 +89,11 @@ class PPOAgent(Agent):
         sample: draw actions from the policy instead of taking the argmax.
         revisit_penalty: logit units subtracted from a move per earlier visit of its destination pose
             (0: off; see :mod:`findview_baselines.rl.search_memory`).
-        revisit_row_stride: with the memory on, after a turn move to the next search row this many 1-step
-            moves up or down (alternately, growing); 0: off.
+        revisit_rows: with the memory on, its row search (:class:`~findview_baselines.rl.search_memory.RowSearch`:
+            after a turn move to the next search row, ``stride`` 1-step moves up or down, alternately, growing;
+            from step ``after`` on, at most ``budget`` steps per row; the default: off).
         revisit_near: with the memory on, its near visits (:class:`~findview_baselines.rl.search_memory.NearVisits`;
             the default: off).
-        revisit_row_after, revisit_row_budget: with the row search, the step from which it acts and the most steps
-            at one search row (0: from the start; no limit; see :mod:`findview_baselines.rl.search_memory`).
         refiner: a :class:`~findview_baselines.agents.stop_refine.StopRefiner` for the final refinement of the
             policy's stops (``None``: the policy's stops stand).
         stop_prob: STOP whenever the policy gives STOP at least this probability, even when a move has more
@@ -120,7 +119,7 @@ class PPOAgent(Agent):
         seed: int = 0,
         sample: bool = False,
         revisit_penalty: float = 0.0,
-        revisit_row_stride: int = 0,
+        revisit_rows: RowSearch = RowSearch(),
         refiner: StopRefiner | None = None,
         stop_prob: float | None = None,
         fov: float | None = None,
@@ -128,8 +127,6 @@ class PPOAgent(Agent):
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
-        revisit_row_after: int = 0,
-        revisit_row_budget: int = 0,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -147,8 +144,7 @@ class PPOAgent(Agent):
         self.done = np.zeros(self.num_envs, dtype=bool)
         self._fallback = np.random.default_rng(self.seed)
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
-        self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_row_stride,
-                                             revisit_near, revisit_row_after, revisit_row_budget)
+        self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_rows, revisit_near)
         self.refiner = refiner
         self.memory_band = 0  # rows of the search memory's band, when the network reads the memory
         if getattr(policy, "memory_inputs", 0):
@@ -188,7 +184,7 @@ class PPOAgent(Agent):
         height: int | None = None,
         width: int | None = None,
         revisit_penalty: float | None = None,
-        revisit_row_stride: int = 0,
+        revisit_rows: RowSearch = RowSearch(),
         refiner: StopRefiner | None = None,
         stop_prob: float | None = None,
         fov: float | None = None,
@@ -196,8 +192,6 @@ class PPOAgent(Agent):
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
-        revisit_row_after: int = 0,
-        revisit_row_budget: int = 0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -244,8 +238,8 @@ class PPOAgent(Agent):
         except RuntimeError as err:
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
-            policy, num_envs, device, seed, sample, revisit_penalty, revisit_row_stride, refiner, stop_prob, fov,
-            stop_by, stop_min_prob, stop_by_phase, revisit_near, revisit_row_after, revisit_row_budget,
+            policy, num_envs, device, seed, sample, revisit_penalty, revisit_rows, refiner, stop_prob, fov,
+            stop_by, stop_min_prob, stop_by_phase, revisit_near,
         )
 
     @classmethod
@@ -268,11 +262,10 @@ class PPOAgent(Agent):
             raise ValueError("agent 'ppo' needs a checkpoint: pass checkpoint=<path to a .pth file>")
         return cls.from_checkpoint(
             checkpoint, num_envs, device, seed, cfg.sample, height=height, width=width,
-            revisit_penalty=cfg.revisit_penalty, revisit_row_stride=cfg.revisit_row_stride,
+            revisit_penalty=cfg.revisit_penalty, revisit_rows=RowSearch.of(cfg),
             refiner=_refiner(cfg, num_envs, width) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
-            stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), revisit_row_after=cfg.revisit_row_after,
-            revisit_row_budget=cfg.revisit_row_budget,
+            stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg),
         )
 
     # acting --------------------------------------------------------------------------------------

@@ -94,7 +94,7 @@ from findview_baselines.rl.dagger_config import LABEL_MODES, DAggerConfig, beta_
 from findview_baselines.rl.dagger_loss import set_nll
 from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.scheduler import DifficultyScheduler
-from findview_baselines.rl.search_memory import SEARCH_ROWS, NearVisits, make_revisit_penalty, memory_band
+from findview_baselines.rl.search_memory import SEARCH_ROWS, NearVisits, RowSearch, make_revisit_penalty, memory_band
 from findview_baselines.rl.sequence_buffer import SequenceBuffer
 from findview_baselines.rl.storage import AUX_SIZE
 from findview_baselines.rl.trainer_base import TIMING_KEYS, Trainer, never, no_distribution_validation
@@ -172,10 +172,8 @@ class DAggerTrainer(Trainer):
         set_level: Callable[[int], None] | None = None,
         seed: int = 0,
         revisit_penalty: float = 0.0,
-        revisit_row_stride: int = 0,
+        revisit_rows: RowSearch = RowSearch(),
         revisit_near: NearVisits = NearVisits(),
-        revisit_row_after: int = 0,
-        revisit_row_budget: int = 0,
     ) -> None:
         super().__init__(env, policy, cfg, total_updates, scheduler, set_level)
         self.aux_head: AuxHead | None = AuxHead(policy.feature_size).to(self.device) if cfg.aux_coef > 0 else None
@@ -201,8 +199,7 @@ class DAggerTrainer(Trainer):
         self.hidden = policy.initial_hidden(n, dev)
         self.masks = torch.zeros(n, device=dev)
         # the learner acts in rollouts as the evaluated agent will (agent.revisit_penalty: its search memory)
-        self.revisits = make_revisit_penalty(n, dev, revisit_penalty, revisit_row_stride, revisit_near,
-                                             revisit_row_after, revisit_row_budget)
+        self.revisits = make_revisit_penalty(n, dev, revisit_penalty, revisit_rows, revisit_near)
         self._all_slots = torch.arange(n, device=dev)
         # a policy that reads its search memory (memory_inputs): the memory's row band, half a FoV
         self.memory_band = 0

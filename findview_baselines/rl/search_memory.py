@@ -28,16 +28,16 @@ the staircase of pitch and yaw moves onto a target just passed). A penalty below
 going back over ground a few rows off the old path costs less than an exact revisit, and a move the policy prefers by
 a wide margin (its last moves onto a target it sees) is still taken.
 
-**Row search** (``row_stride > 0``): the memory alone leaves a finished row one step at a time, so a target far
+**Row search** (:class:`RowSearch`, ``stride > 0``): the memory alone leaves a finished row one step at a time, so a target far
 above or below is found late or never. With a stride ``s`` (in steps; 45 = half of a 90-degree FoV), once the
 rows within 2 steps of the current one hold ``row_cover`` of a full turn of yaw cells, the agent's moves are
 replaced by pitch moves to the next search row, at offsets ``+s, -s, +2s, -2s, ...`` from its start row; there
 the policy acts again. A forced move that is blocked (the pitch limit) skips to the next row; rows beyond
 ``max_pitch_steps`` end the search. ``STOP`` still wins wherever it is the policy's argmax.
 
-Two settings make the row search a **safety net** for a learned search. ``row_after = a`` (steps): the rows are
+Two settings make the row search a **safety net** for a learned search. ``after = a`` (steps): the rows are
 forced only from the ``a``-th step of an episode on; before it the policy searches alone, so the episodes it
-finishes in time are untouched. ``row_budget = b`` (steps): once the search has chosen a row (or, for the first, once
+finishes in time are untouched. ``budget = b`` (steps): once the search has chosen a row (or, for the first, once
 it starts), it moves on to the next after ``b`` steps even if the band is not looked around. A learned agent unsure
 which row to search next can zigzag up and down, one yaw column per pass, or pace between two rows it has looked
 around (each of them a row of visited cells that costs ``penalty`` to step into): every cell it visits is new, no
@@ -57,7 +57,8 @@ from typing import Any
 
 import torch
 
-__all__ = ["MEMORY_FEATURES", "NearVisits", "SEARCH_ROWS", "RevisitPenalty", "make_revisit_penalty", "memory_band"]
+__all__ = ["MEMORY_FEATURES", "NearVisits", "RowSearch", "SEARCH_ROWS", "RevisitPenalty", "make_revisit_penalty",
+           "memory_band"]
 
 #: the search rows of :meth:`RevisitPenalty.memory_features`, in units of ``band + 1`` steps from the start row
 SEARCH_ROWS = (1, -1, 2, -2)
@@ -97,24 +98,54 @@ class NearVisits:
         return cls(int(agent.revisit_near_rows), float(agent.revisit_near_penalty), int(agent.revisit_near_age))
 
 
-def make_revisit_penalty(
-    num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, revisit_row_stride: int = 0,
-    near: NearVisits = NearVisits(), revisit_row_after: int = 0, revisit_row_budget: int = 0,
-) -> "RevisitPenalty | None":
-    """The search memory of ``num_envs`` slots, or ``None`` when ``revisit_penalty`` is 0 (off); ``near``: its near
-    visits (:class:`NearVisits`); ``revisit_row_*``: its row search (:class:`RevisitPenalty`'s ``row_*``).
+@dataclass(frozen=True)
+class RowSearch:
+    """The row-search settings of a search memory (module docstring, "Row search"; ``stride = 0``: off).
+
+    Attributes:
+        stride: steps between search rows (45 = half of a 90-degree FoV at 1 degree per step).
+        after: the step of an episode from which the row search acts (0: from its first step).
+        budget: steps at one search row after which the search moves on though the row is not looked around
+            (0: no limit).
 
     Raises:
-        ValueError: a negative or NaN penalty, a negative stride, bad near-visit settings, or a negative
-            ``revisit_row_after`` / ``revisit_row_budget``, or either without a row search (stride 0).
+        ValueError: a negative setting, or ``after`` / ``budget`` without a row search (``stride`` 0).
+    """
+
+    stride: int = 0
+    after: int = 0
+    budget: int = 0
+
+    def __post_init__(self) -> None:
+        if int(self.stride) < 0 or int(self.after) < 0 or int(self.budget) < 0:
+            raise ValueError(f"row search: need stride, after and budget >= 0 steps, got stride={self.stride}, "
+                             f"after={self.after}, budget={self.budget}")
+        if (int(self.after) or int(self.budget)) and not int(self.stride):
+            raise ValueError(f"row search: after={self.after} and budget={self.budget} steps need a row search "
+                             f"(agent.revisit_row_stride > 0), got stride=0")
+
+    @classmethod
+    def of(cls, agent: Any) -> "RowSearch":
+        """The settings of a learned agent's typed config (``revisit_row_stride``, ``_after``, ``_budget``)."""
+        return cls(int(agent.revisit_row_stride), int(agent.revisit_row_after), int(agent.revisit_row_budget))
+
+
+def make_revisit_penalty(
+    num_envs: int, device: str | torch.device, revisit_penalty: float = 0.0, rows: RowSearch = RowSearch(),
+    near: NearVisits = NearVisits(),
+) -> "RevisitPenalty | None":
+    """The search memory of ``num_envs`` slots, or ``None`` when ``revisit_penalty`` is 0 (off); ``rows``: its row
+    search (:class:`RowSearch`); ``near``: its near visits (:class:`NearVisits`).
+
+    Raises:
+        ValueError: a negative or NaN penalty.
     """
     penalty = float(revisit_penalty)
     if penalty < 0 or penalty != penalty:
         raise ValueError(f"revisit_penalty must be >= 0 logit units per visit (0 = off), got {revisit_penalty}")
     if penalty == 0:
         return None
-    return RevisitPenalty(num_envs, penalty, device, row_stride=int(revisit_row_stride), near=near,
-                          row_after=int(revisit_row_after), row_budget=int(revisit_row_budget))
+    return RevisitPenalty(num_envs, penalty, device, rows=rows, near=near)
 
 #: (pitch, yaw) grid steps of UP, DOWN, LEFT, RIGHT (STOP does not move)
 _MOVES = ((1, 0), (-1, 0), (0, -1), (0, 1))
@@ -130,28 +161,21 @@ class RevisitPenalty:
         step_deg: degrees per action (the yaw grid has ``360 / step_deg`` cells).
         max_pitch_steps: pitch offsets are clamped to ``[-max_pitch_steps, max_pitch_steps]`` steps
             (180 degrees covers any start and target).
-        row_stride: row search stride in steps (0: off; see the module docstring).
-        row_cover: share of a full turn of yaw cells seen near the current row that ends it (0 < x <= 1).
-        row_after: the step of an episode from which the row search acts (0: from its first step).
-        row_budget: steps at one search row after which the search moves on though the row is not looked around
-            (0: no limit; see the module docstring).
+        rows: the row search (:class:`RowSearch`; the default: off; see the module docstring).
+        row_cover: share of a full turn of yaw cells seen near the current row that counts it as looked around
+            (0 < x <= 1; the row search and :meth:`memory_features`).
         near: the near visits a move also pays for (:class:`NearVisits`; the default: off; see the module docstring).
     """
 
     def __init__(
         self, num_envs: int, penalty: float, device: str | torch.device = "cpu", step_deg: int = 1,
-        max_pitch_steps: int | None = None, row_stride: int = 0, row_cover: float = 0.9,
-        near: NearVisits = NearVisits(), row_after: int = 0, row_budget: int = 0,
+        max_pitch_steps: int | None = None, rows: RowSearch = RowSearch(), row_cover: float = 0.9,
+        near: NearVisits = NearVisits(),
     ) -> None:
         if not penalty > 0:
             raise ValueError(f"revisit penalty must be > 0 logit units per visit, got {penalty}")
-        if int(row_stride) < 0 or not 0.0 < float(row_cover) <= 1.0:
-            raise ValueError(f"row search: need row_stride >= 0 steps and 0 < row_cover <= 1, got {row_stride}, {row_cover}")
-        if int(row_after) < 0 or int(row_budget) < 0:
-            raise ValueError(f"row search: need row_after >= 0 and row_budget >= 0 steps, got {row_after}, {row_budget}")
-        if (int(row_after) or int(row_budget)) and not int(row_stride):
-            raise ValueError(f"row search: row_after={row_after} and row_budget={row_budget} steps need a row search "
-                             f"(agent.revisit_row_stride > 0), got row_stride=0")
+        if not 0.0 < float(row_cover) <= 1.0:
+            raise ValueError(f"row_cover must be in (0, 1] (a share of a full turn), got {row_cover}")
         if int(step_deg) < 1 or 360 % int(step_deg):
             raise ValueError(f"step_deg must be a positive divisor of 360, got {step_deg}")
         self.penalty = float(penalty)
@@ -178,14 +202,12 @@ class RevisitPenalty:
         # the step of each cell's last visit and each slot's steps since its reset (kept with near visits only)
         self.last_visit = torch.zeros(self.visits.shape if r else (n, 1, 1), dtype=torch.int32, device=self.device)
         self.clock = torch.zeros(n, dtype=torch.int32, device=self.device)
-        # row search (row_stride > 0): after a turn, move to the next search row, start + s, - s, + 2s, - 2s, ...
-        self.row_stride = int(row_stride)
+        # row search (rows.stride > 0): after a turn, move to the next search row, start + s, - s, + 2s, - 2s, ...
+        self.rows = rows
         self.cover_cells = max(1, int(round(float(row_cover) * self.yaw_cells)))
         self.row_k = torch.zeros(n, dtype=torch.long, device=self.device)  # index of the current search row
         self.row_target = torch.zeros(n, dtype=torch.long, device=self.device)  # its pitch offset, steps
         self.row_seek = torch.zeros(n, dtype=torch.bool, device=self.device)  # on the way to it
-        self.row_after = int(row_after)
-        self.row_budget = int(row_budget)
         self.row_started = torch.zeros(n, dtype=torch.int32, device=self.device)  # clock when the row was chosen
         self.last_blocked = torch.zeros(n, dtype=torch.bool, device=self.device)
 
@@ -268,7 +290,7 @@ class RevisitPenalty:
         rows = self.pitch[idx] + self.max_pitch
         out = logits.clone()
         out[:, :4] = out[:, :4] - self.move_penalties(idx).to(out.dtype)
-        if self.row_stride > 0:
+        if self.rows.stride > 0:
             self._row_search(idx, rows, out)
         # the stop decision stays the policy's own: penalised moves must not make STOP win by default
         stop = logits.argmax(dim=-1) == 4
@@ -332,9 +354,10 @@ class RevisitPenalty:
 
     def _row_search(self, idx: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
         """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn (or the row's
-        ``row_budget`` is spent), force pitch moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the
-        start, ``s = row_stride``); a forced move that is blocked (the pitch limit) skips to the next row. Nothing
-        is forced before step ``row_after``. Edits ``out`` (K, 5) in place."""
+        ``rows.budget`` is spent), force pitch moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the
+        start, ``s = rows.stride``); a forced move that is blocked (the pitch limit) skips to the next row. Nothing
+        is forced before step ``rows.after``. Edits ``out`` (K, 5) in place."""
+        after, budget = int(self.rows.after), int(self.rows.budget)
         band = (rows[:, None] + torch.arange(-2, 3, device=self.device)[None]).clamp(0, 2 * self.max_pitch)  # (K, 5)
         coverage = (self.visits[idx[:, None], band] > 0).any(dim=1).sum(dim=-1)  # (K,) yaw cells seen in the band
         seek = self.row_seek[idx]
@@ -343,13 +366,13 @@ class RevisitPenalty:
         seek = seek & (pitch != self.row_target[idx])  # arrived
         clock = self.clock[idx]
         done = coverage >= self.cover_cells
-        if self.row_budget > 0:  # steps since the row was chosen (or since the search started)
-            done = done | (clock - self.row_started[idx].clamp(min=self.row_after) > self.row_budget)
-        live = clock > self.row_after
+        if budget > 0:  # steps since the row was chosen (or since the search started)
+            done = done | (clock - self.row_started[idx].clamp(min=after) > budget)
+        live = clock > after
         advance = live & (blocked | (~seek & done))
         k = self.row_k[idx] + advance.long()
         m = (k + 1) // 2
-        target = torch.where(k % 2 == 1, m, -m) * self.row_stride
+        target = torch.where(k % 2 == 1, m, -m) * int(self.rows.stride)
         target = torch.where(advance, target, self.row_target[idx])
         seek = (seek | advance) & (target.abs() <= self.max_pitch)
         self.row_k[idx] = k

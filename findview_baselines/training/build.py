@@ -20,7 +20,7 @@ from findview_baselines.errors import UserError
 from findview_baselines.rl import distributed
 from findview_baselines.rl.policy import Policy, build_policy
 from findview_baselines.rl.scheduler import DifficultyScheduler
-from findview_baselines.rl.search_memory import NearVisits
+from findview_baselines.rl.search_memory import NearVisits, RowSearch
 from findview_baselines.rl.trainer_base import Trainer
 
 log = logging.getLogger(__name__)
@@ -93,9 +93,8 @@ def make_trainer(cfg: TrainConfig, env: Any, policy: Policy, scheduler: Difficul
         from findview_baselines.rl.dagger import DAggerTrainer
 
         return DAggerTrainer(env, policy, t.dagger, t.num_updates, scheduler, set_level, seed=seed,
-                             revisit_penalty=agent.revisit_penalty, revisit_row_stride=agent.revisit_row_stride,
-                             revisit_near=NearVisits.of(agent), revisit_row_after=agent.revisit_row_after,
-                             revisit_row_budget=agent.revisit_row_budget)
+                             revisit_penalty=agent.revisit_penalty, revisit_rows=RowSearch.of(agent),
+                             revisit_near=NearVisits.of(agent))
     from findview_baselines.rl.ppo_trainer import PPOTrainer
 
     if agent.memory_inputs:
@@ -160,6 +159,5 @@ def make_val_agent(agent: PPOAgentConfig, policy: Policy, num_envs: int, seed: i
     from findview_baselines.agents.ppo_agent import PPOAgent
 
     return PPOAgent(policy, num_envs, next(policy.parameters()).device, seed, sample=agent.sample,
-                    revisit_penalty=agent.revisit_penalty, revisit_row_stride=agent.revisit_row_stride, fov=agent.fov,
-                    revisit_near=NearVisits.of(agent), revisit_row_after=agent.revisit_row_after,
-                    revisit_row_budget=agent.revisit_row_budget)
+                    revisit_penalty=agent.revisit_penalty, revisit_rows=RowSearch.of(agent), fov=agent.fov,
+                    revisit_near=NearVisits.of(agent))
