@@ -71,7 +71,8 @@ def test_robust_memory_starts_from_where_the_robust_preset_writes_its_best_check
 
 def test_robust_polish_continues_stage_2_as_the_card_runs_it() -> None:
     """Stage 3 starts from stage 2's last update (latest.pth: the weights of its val_u01000.pth, the stage-2 file),
-    keeps its network (memory inputs, pitch warps) and labels (yaw band 0.5), lets the learner act (beta 0.2 -> 0),
+    keeps its network (memory inputs, pitch warps) and labels (no yaw band: turn towards any overlapping target, since
+    session 37), lets the learner act (beta 0.2 -> 0),
     and its two search weights write to two run folders (the card averages them)."""
     stage2 = compose_config("train", ["+experiment=robust_memory"], return_hydra_config=True)
     runs = [compose_config("train", ["+experiment=robust_polish", f"trainer.dagger.search_weight={w}"], return_hydra_config=True)
@@ -79,7 +80,7 @@ def test_robust_polish_continues_stage_2_as_the_card_runs_it() -> None:
     stage3 = runs[0]
     assert stage3.init_from == f"{stage2.hydra.run.dir}/checkpoints/latest.pth"
     assert stage3.agent.memory_inputs and stage3.agent.pitch_warps
-    assert stage3.trainer.dagger.search_yaw_band == 0.5
+    assert stage3.trainer.dagger.search_yaw_band == stage2.trainer.dagger.search_yaw_band == 1.0
     assert (stage3.trainer.dagger.beta_start, stage3.trainer.dagger.beta_end) == (0.2, 0.0)
     assert stage3.trainer.dagger.lr < stage2.trainer.dagger.lr
     assert stage3.scheduler.start_level == 3
