@@ -117,17 +117,19 @@ class RowSearch:
     budget: int = 0
 
     def __post_init__(self) -> None:
-        if int(self.stride) < 0 or int(self.after) < 0 or int(self.budget) < 0:
+        for name in ("stride", "after", "budget"):  # stored as ints once, so the hot path reads them as they are
+            object.__setattr__(self, name, int(getattr(self, name)))
+        if self.stride < 0 or self.after < 0 or self.budget < 0:
             raise ValueError(f"row search: need stride, after and budget >= 0 steps, got stride={self.stride}, "
                              f"after={self.after}, budget={self.budget}")
-        if (int(self.after) or int(self.budget)) and not int(self.stride):
+        if (self.after or self.budget) and not self.stride:
             raise ValueError(f"row search: after={self.after} and budget={self.budget} steps need a row search "
                              f"(agent.revisit_row_stride > 0), got stride=0")
 
     @classmethod
     def of(cls, agent: Any) -> "RowSearch":
         """The settings of a learned agent's typed config (``revisit_row_stride``, ``_after``, ``_budget``)."""
-        return cls(int(agent.revisit_row_stride), int(agent.revisit_row_after), int(agent.revisit_row_budget))
+        return cls(agent.revisit_row_stride, agent.revisit_row_after, agent.revisit_row_budget)
 
 
 def make_revisit_penalty(
@@ -357,7 +359,7 @@ class RevisitPenalty:
         ``rows.budget`` is spent), force pitch moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the
         start, ``s = rows.stride``); a forced move that is blocked (the pitch limit) skips to the next row. Nothing
         is forced before step ``rows.after``. Edits ``out`` (K, 5) in place."""
-        after, budget = int(self.rows.after), int(self.rows.budget)
+        after, budget = self.rows.after, self.rows.budget
         band = (rows[:, None] + torch.arange(-2, 3, device=self.device)[None]).clamp(0, 2 * self.max_pitch)  # (K, 5)
         coverage = (self.visits[idx[:, None], band] > 0).any(dim=1).sum(dim=-1)  # (K,) yaw cells seen in the band
         seek = self.row_seek[idx]
@@ -372,7 +374,7 @@ class RevisitPenalty:
         advance = live & (blocked | (~seek & done))
         k = self.row_k[idx] + advance.long()
         m = (k + 1) // 2
-        target = torch.where(k % 2 == 1, m, -m) * int(self.rows.stride)
+        target = torch.where(k % 2 == 1, m, -m) * self.rows.stride
         target = torch.where(advance, target, self.row_target[idx])
         seek = (seek | advance) & (target.abs() <= self.max_pitch)
         self.row_k[idx] = k
