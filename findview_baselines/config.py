@@ -323,6 +323,14 @@ class PPOAgentConfig:
     divides the size, 256 -> 128 pixels; the pose where it was measured plus the rotation measured there) and stops
     there. Episodes that stop by themselves, or whose STOP
     probability reached 0.1, are unchanged. false = off."""
+    mirror_steps: int = 0
+    """At evaluation (as ``refine_stop``): for the first this many policy steps of an episode the network also plays
+    the episode's left-right mirror (view and target flipped, a second GRU state) and the agent acts on the mean of
+    the two log-probabilities, the mirror's LEFT and RIGHT swapped; turning back against its last yaw move then needs
+    both to want it. A network that finds targets on one side better than on the other picks the side of a target in
+    view as well on both (the task is the same in a mirror); a long search is the network's alone (it learned to
+    search turning one way, which its mirror turns the other). Up to twice the network's work per step.
+    0 = off. See findview_baselines/agents/ppo_agent.py, ``mirror_mean``."""
     fov: float = 90.0
     """Horizontal field of view of the views, degrees (the refinement's pixels-to-degrees; configs/agent/ppo.yaml
     sets it to ${sim.fov})."""
@@ -370,6 +378,7 @@ class PPOAgentConfig:
         check(self.stop_by >= 0, "agent.stop_by", self.stop_by, "0 (off) or a step number (T)")
         check(not self.stop_by_phase or self.stop_by > 0, "agent.stop_by", self.stop_by,
               "a step number (T) with agent.stop_by_phase=true")
+        check(self.mirror_steps >= 0, "agent.mirror_steps", self.mirror_steps, "0 (off) or a number of policy steps")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
         check(not self.memory_inputs or self.revisit_penalty > 0, "agent.revisit_penalty", self.revisit_penalty,

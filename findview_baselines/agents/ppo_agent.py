@@ -54,6 +54,7 @@ import torch
 
 from findview.episode import Episode
 from findview.runtime import scoped
+from findview.task import Action
 from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.give_up import GiveUp
 from findview_baselines.agents.stop_refine import StopRefiner
@@ -65,7 +66,45 @@ if TYPE_CHECKING:
 
     from findview_baselines.config import PPOAgentConfig
 
-__all__ = ["PPOAgent", "load_ppo_checkpoint"]
+__all__ = ["PPOAgent", "load_ppo_checkpoint", "mirror_mean"]
+
+#: action ids as seen in the left-right mirror of an episode: LEFT and RIGHT change places
+MIRRORED_ACTIONS = (Action.UP, Action.DOWN, Action.RIGHT, Action.LEFT, Action.STOP)
+
+
+def mirror_mean(logits: torch.Tensor, count: int, heading: torch.Tensor | None = None) -> "Categorical":
+    """The action distribution of an episode and its left-right mirror played together.
+
+    ``logits``: (2K, 5), rows ``0..K-1`` the network on the episodes, rows ``K..2K-1`` on their mirrors (views and
+    targets flipped left-right), ``K = count``. Returns the Categorical of the mean of the two log-probabilities per
+    episode, the mirror's LEFT and RIGHT swapped (a normalised geometric mean of the two distributions).
+
+    ``heading``: (K,) long, each episode's last yaw move (``Action.LEFT`` / ``Action.RIGHT``; any other value:
+    none yet). A turn back against it needs both plays: where the episode and its mirror do not both prefer the
+    turn back to going on, the two moves' mean log-probabilities change places when the turn back has the larger.
+    (A network that learned to search by turning one way, say right, searches left in the mirror; the mean of the
+    two is then a tie between left and right, and without the rule it turns back and forth.)
+    """
+    from torch.distributions import Categorical
+
+    if logits.shape[0] != 2 * count:
+        raise ValueError(f"mirror_mean needs 2 x {count} rows of logits (episodes, then their mirrors), got {logits.shape[0]}")
+    logp = torch.log_softmax(logits, dim=-1)
+    order = torch.tensor([int(a) for a in MIRRORED_ACTIONS], device=logits.device)
+    own, mirrored = logp[:count], logp[count:, order]
+    mean = (own + mirrored) / 2
+    if heading is not None:
+        rows = torch.nonzero((heading == Action.LEFT) | (heading == Action.RIGHT)).flatten()
+        if len(rows):
+            on = heading[rows].view(-1, 1)
+            back = torch.where(on == Action.LEFT, int(Action.RIGHT), int(Action.LEFT))
+            agreed = (own[rows].gather(1, back) > own[rows].gather(1, on)) & \
+                (mirrored[rows].gather(1, back) > mirrored[rows].gather(1, on))
+            m_on, m_back = mean[rows].gather(1, on), mean[rows].gather(1, back)
+            swap = ~agreed & (m_back > m_on)
+            mean[rows] = mean[rows].scatter(1, on, torch.where(swap, m_back, m_on)).scatter(
+                1, back, torch.where(swap, m_on, m_back))
+    return Categorical(logits=mean)
 
 
 def load_ppo_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
@@ -107,6 +146,10 @@ class PPOAgent(Agent):
             memory's dead reckoning).
         stop_by_phase: with ``stop_by``, a slot whose STOP probability never reached 0.1 walks to the pose the
             clearest phase correlation of view and target pointed at (:class:`GiveUp`, ``phase``); needs ``fov``.
+        mirror_steps: for the first ``mirror_steps`` policy steps of each episode the network also plays the episode's
+            left-right mirror (view and target flipped, a GRU state of its own) and the agent acts on the mean of the
+            two log-probabilities, the mirror's LEFT and RIGHT swapped (:func:`mirror_mean`); later steps are the
+            network's alone. 0: off.
     """
 
     name = "ppo"
@@ -127,6 +170,7 @@ class PPOAgent(Agent):
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
+        mirror_steps: int = 0,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -141,6 +185,15 @@ class PPOAgent(Agent):
         self.policy = policy.to(self.device).eval()
         self.sample = bool(sample)
         self.hidden = policy.initial_hidden(self.num_envs, self.device)
+        if int(mirror_steps) < 0:
+            raise ValueError(f"mirror_steps must be >= 0 policy steps (0 = off), got {mirror_steps}")
+        self.mirror_steps = int(mirror_steps)
+        # the mirrored episodes' GRU states (mirror_steps), None without them
+        self.hidden_mirror = policy.initial_hidden(self.num_envs, self.device) if self.mirror_steps else None
+        # each slot's policy steps so far in its episode, and its last yaw move (Action.LEFT / RIGHT; -1: none
+        # yet), for the mirror's rule on turning back
+        self.policy_steps = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        self.heading = torch.full((self.num_envs,), -1, dtype=torch.long, device=self.device)
         self.done = np.zeros(self.num_envs, dtype=bool)
         self._fallback = np.random.default_rng(self.seed)
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
@@ -192,6 +245,7 @@ class PPOAgent(Agent):
         stop_min_prob: float | None = None,
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
+        mirror_steps: int = 0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -239,7 +293,7 @@ class PPOAgent(Agent):
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_rows, refiner, stop_prob, fov,
-            stop_by, stop_min_prob, stop_by_phase, revisit_near,
+            stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps,
         )
 
     @classmethod
@@ -265,7 +319,7 @@ class PPOAgent(Agent):
             revisit_penalty=cfg.revisit_penalty, revisit_rows=RowSearch.of(cfg),
             refiner=_refiner(cfg, num_envs, width) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
-            stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg),
+            stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), mirror_steps=cfg.mirror_steps,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -275,6 +329,10 @@ class PPOAgent(Agent):
         if not ids:
             return
         self.hidden[torch.tensor(ids, device=self.hidden.device)] = 0.0
+        if self.hidden_mirror is not None:
+            self.hidden_mirror[torch.tensor(ids, device=self.hidden.device)] = 0.0
+        self.policy_steps[torch.tensor(ids, device=self.device)] = 0
+        self.heading[torch.tensor(ids, device=self.device)] = -1
         if self.revisits is not None:
             self.revisits.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
         if self.refiner is not None:
@@ -324,6 +382,9 @@ class PPOAgent(Agent):
                 actions[idx] = self.refiner.decide(idx, v, t)
         if len(work):
             self.done[work[(actions[torch.as_tensor(work, device=self.device)] == STOP).cpu().numpy()]] = True
+        if self.mirror_steps:
+            turned = (actions == Action.LEFT) | (actions == Action.RIGHT)
+            self.heading = torch.where(turned, actions, self.heading)
         return actions.to(view.device)
 
     def step_stop_prob(self) -> torch.Tensor | None:
@@ -352,12 +413,11 @@ class PPOAgent(Agent):
         v = view.to(self.device) if full else view.to(self.device)[idx]
         t = target.to(self.device) if full else target.to(self.device)[idx]
         h = self.hidden if full else self.hidden[idx]
-        masks = torch.ones(len(work), device=self.device)
         memory = None
         if self.memory_band:  # the network reads the memory after this step's arrival
             self.revisits.arrive(idx, v)
             memory = self.revisits.memory_features(idx, self.memory_band)
-        dist, _, h_new = self.policy({"view": v, "target": t}, h, masks, memory=memory)
+        dist, h_new = self._play(idx, v, t, h, memory)
         self._last_policy = (idx, dist)  # references only: step_stop_prob computes from them when asked
         if full:
             self.hidden = h_new
@@ -396,6 +456,31 @@ class PPOAgent(Agent):
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t
+
+    def _play(self, idx: torch.Tensor, view: torch.Tensor, target: torch.Tensor, hidden: torch.Tensor,
+              memory: torch.Tensor | None) -> tuple["Categorical", torch.Tensor]:
+        """One network step for the slots ``idx`` (K,): their views and targets (K, 3, h, w), GRU states (K, hidden)
+        and memory features (or ``None``). Returns the action distribution (K rows) and the new GRU states. Slots in
+        their first ``mirror_steps`` steps also play their mirror, in the same batch (the memory's features are the
+        same in a mirror), and get :func:`mirror_mean`'s distribution; their mirror states move on."""
+        from torch.distributions import Categorical
+
+        count = len(idx)
+        masks = torch.ones(count, device=self.device)
+        self.policy_steps[idx] += 1
+        if self.hidden_mirror is None:
+            dist, _, h_new = self.policy({"view": view, "target": target}, hidden, masks, memory=memory)
+            return dist, h_new
+        rows = torch.nonzero(self.policy_steps[idx] <= self.mirror_steps).flatten()  # rows whose mirror plays
+        both = {"view": torch.cat([view, view[rows].flip(-1)]), "target": torch.cat([target, target[rows].flip(-1)])}
+        dist, _, h_all = self.policy(both, torch.cat([hidden, self.hidden_mirror[idx[rows]]]), masks.new_ones(count + len(rows)),
+                                     memory=None if memory is None else torch.cat([memory, memory[rows]]))
+        logits = dist.logits[:count]
+        if len(rows):
+            fused = mirror_mean(torch.cat([logits[rows], dist.logits[count:]]), len(rows), self.heading[idx[rows]])
+            logits = logits.index_copy(0, rows, fused.logits)
+            self.hidden_mirror[idx[rows]] = h_all[count:]
+        return Categorical(logits=logits), h_all[:count]
 
     def _refuse_far(self, idx: torch.Tensor, a_t: torch.Tensor, logits: torch.Tensor, stop_like: torch.Tensor,
                     rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
