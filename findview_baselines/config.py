@@ -326,11 +326,11 @@ class PPOAgentConfig:
     mirror_steps: int = 0
     """At evaluation (as ``refine_stop``): for the first this many policy steps of an episode the network also plays
     the episode's left-right mirror (view and target flipped, a second GRU state) and the agent acts on the mean of
-    the two log-probabilities, the mirror's LEFT and RIGHT swapped; turning back against its last yaw move then needs
-    both to want it. A network that finds targets on one side better than on the other picks the side of a target in
-    view as well on both (the task is the same in a mirror); a long search is the network's alone (it learned to
-    search turning one way, which its mirror turns the other). Up to twice the network's work per step.
-    0 = off. See findview_baselines/agents/ppo_agent.py, ``mirror_mean``."""
+    the two log-probabilities, the mirror's LEFT and RIGHT swapped: a network that finds targets on one side better
+    than on the other picks the side of a target in view as well on both (the task is the same in a mirror). Where
+    one play would turn back against the last yaw move and the other go on, the one going on leads (a network that
+    learned to search turning one way searches the other way in its mirror). Up to twice the network's work per
+    step. 0 = off; ``task.max_steps``: every step. See findview_baselines/agents/ppo_agent.py, ``mirror_mean``."""
     fov: float = 90.0
     """Horizontal field of view of the views, degrees (the refinement's pixels-to-degrees; configs/agent/ppo.yaml
     sets it to ${sim.fov})."""

@@ -40,27 +40,30 @@ def test_the_fused_distribution_is_the_normalised_geometric_mean():
         mirror_mean(log_probs(own, mirrored, own), 2)
 
 
-def test_turning_back_needs_both_plays():
+def test_when_the_plays_disagree_about_turning_back_the_one_going_on_leads():
     # the episode prefers RIGHT (0.6 against LEFT 0.2); its mirror, in the episode's frame, prefers LEFT (0.7 / 0.1)
     own = [0.1, 0.05, 0.2, 0.6, 0.05]
     mirrored = [0.1, 0.05, 0.1, 0.7, 0.05]  # own frame: RIGHT 0.7 = the episode's LEFT
+    mirrored_here = [0.1, 0.05, 0.7, 0.1, 0.05]  # the same in the episode's frame
     pair = log_probs(own, mirrored)
     free = mirror_mean(pair, 1).probs[0]
     # by hand: LEFT sqrt(.2 * .7) = 0.374 beats RIGHT sqrt(.6 * .1) = 0.245
     assert int(free.argmax()) == LEFT
-    # heading RIGHT: turning back to LEFT is wanted by the mirror only, so the two values change places
-    held = mirror_mean(pair, 1, torch.tensor([RIGHT])).probs[0]
-    assert int(held.argmax()) == RIGHT
-    assert held[RIGHT] == pytest.approx(float(free[LEFT]))
-    assert held[LEFT] == pytest.approx(float(free[RIGHT]))
-    assert held[[UP, DOWN, STOP]].tolist() == pytest.approx(free[[UP, DOWN, STOP]].tolist())
-    # heading LEFT: going on is what the fused distribution prefers anyway
-    assert torch.allclose(mirror_mean(pair, 1, torch.tensor([LEFT])).probs[0], free)
-    # no yaw move yet (UP as the last move counts as none)
+    # heading RIGHT: the mirror would turn back, the episode's own play goes on: its distribution alone
+    assert mirror_mean(pair, 1, torch.tensor([RIGHT])).probs[0].tolist() == pytest.approx(own)
+    # heading LEFT: now the mirror goes on and leads
+    assert mirror_mean(pair, 1, torch.tensor([LEFT])).probs[0].tolist() == pytest.approx(mirrored_here)
+    # no yaw move yet (-1, or UP as the last move): the geometric mean
     assert torch.allclose(mirror_mean(pair, 1, torch.tensor([-1])).probs[0], free)
-    # both plays want to turn back: it turns back
+    assert torch.allclose(mirror_mean(pair, 1, torch.tensor([UP])).probs[0], free)
+    # both plays want to turn back (or both to go on): the geometric mean, which turns back
     both_left = log_probs([0.1, 0.05, 0.6, 0.2, 0.05], mirrored)
+    assert torch.allclose(mirror_mean(both_left, 1, torch.tensor([RIGHT])).probs[0],
+                          mirror_mean(both_left, 1).probs[0])
     assert int(mirror_mean(both_left, 1, torch.tensor([RIGHT])).probs[0].argmax()) == LEFT
+    # one row per episode: two episodes heading RIGHT and LEFT in one call
+    rows = mirror_mean(log_probs(own, own, mirrored, mirrored), 2, torch.tensor([RIGHT, LEFT])).probs
+    assert rows[0].tolist() == pytest.approx(own) and rows[1].tolist() == pytest.approx(mirrored_here)
 
 
 class HalvesPolicy(torch.nn.Module):
@@ -134,7 +137,7 @@ def test_each_play_keeps_its_own_state_for_mirror_steps_then_the_network_acts_al
 def test_a_network_that_searches_turning_right_does_not_turn_back_and_forth_with_its_mirror():
     # a ring of 1-degree poses whose views alternate: even yaw bright on the left, odd yaw bright on the right. The
     # network always prefers RIGHT; its mirror (which prefers its own RIGHT, the episode's LEFT) is the surer of the
-    # two at odd yaw, so the plain geometric mean would turn back there every time
+    # two at odd yaw, so the plain geometric mean would turn back there every time; the play going on leads instead
     target = torch.zeros(1, 3, 8, 8, dtype=torch.uint8)
 
     def view(yaw: int) -> torch.Tensor:
@@ -150,4 +153,4 @@ def test_a_network_that_searches_turning_right_does_not_turn_back_and_forth_with
         a = int(agent.act({"view": view(yaw), "target": target})[0])
         moves.append(a)
         yaw += {RIGHT: 1, LEFT: -1}[a]
-    assert moves == [RIGHT] * 100  # the first move: RIGHT at even yaw; after it the heading holds at odd yaw
+    assert moves == [RIGHT] * 100  # the first move: RIGHT at even yaw; after it the episode's own play leads

@@ -80,10 +80,10 @@ def mirror_mean(logits: torch.Tensor, count: int, heading: torch.Tensor | None =
     episode, the mirror's LEFT and RIGHT swapped (a normalised geometric mean of the two distributions).
 
     ``heading``: (K,) long, each episode's last yaw move (``Action.LEFT`` / ``Action.RIGHT``; any other value:
-    none yet). A turn back against it needs both plays: where the episode and its mirror do not both prefer the
-    turn back to going on, the two moves' mean log-probabilities change places when the turn back has the larger.
-    (A network that learned to search by turning one way, say right, searches left in the mirror; the mean of the
-    two is then a tie between left and right, and without the rule it turns back and forth.)
+    none yet). Where one play prefers turning back against it to going on and the other prefers going on, the one
+    going on leads: the episode gets that play's distribution alone. (A network that learned to search by turning one
+    way, say right, searches left in the mirror: once the episode turns one way, the play that turns that way by
+    itself searches as the network does, and the other, pulled the other way, would turn back and forth.)
     """
     from torch.distributions import Categorical
 
@@ -92,19 +92,16 @@ def mirror_mean(logits: torch.Tensor, count: int, heading: torch.Tensor | None =
     logp = torch.log_softmax(logits, dim=-1)
     order = torch.tensor([int(a) for a in MIRRORED_ACTIONS], device=logits.device)
     own, mirrored = logp[:count], logp[count:, order]
-    mean = (own + mirrored) / 2
+    fused = (own + mirrored) / 2
     if heading is not None:
-        rows = torch.nonzero((heading == Action.LEFT) | (heading == Action.RIGHT)).flatten()
-        if len(rows):
-            on = heading[rows].view(-1, 1)
-            back = torch.where(on == Action.LEFT, int(Action.RIGHT), int(Action.LEFT))
-            agreed = (own[rows].gather(1, back) > own[rows].gather(1, on)) & \
-                (mirrored[rows].gather(1, back) > mirrored[rows].gather(1, on))
-            m_on, m_back = mean[rows].gather(1, on), mean[rows].gather(1, back)
-            swap = ~agreed & (m_back > m_on)
-            mean[rows] = mean[rows].scatter(1, on, torch.where(swap, m_back, m_on)).scatter(
-                1, back, torch.where(swap, m_on, m_back))
-    return Categorical(logits=mean)
+        turning = (heading == Action.LEFT) | (heading == Action.RIGHT)
+        on = heading.clamp(min=0).view(-1, 1)
+        back = torch.where(on == Action.LEFT, int(Action.RIGHT), int(Action.LEFT))
+        own_back = (own.gather(1, back) > own.gather(1, on)).squeeze(1)
+        mirrored_back = (mirrored.gather(1, back) > mirrored.gather(1, on)).squeeze(1)
+        fused = torch.where((turning & mirrored_back & ~own_back).view(-1, 1), own, fused)
+        fused = torch.where((turning & own_back & ~mirrored_back).view(-1, 1), mirrored, fused)
+    return Categorical(logits=fused)
 
 
 def load_ppo_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
