@@ -61,6 +61,13 @@ def test_when_the_plays_disagree_about_turning_back_the_one_going_on_leads():
     assert torch.allclose(mirror_mean(both_left, 1, torch.tensor([RIGHT])).probs[0],
                           mirror_mean(both_left, 1).probs[0])
     assert int(mirror_mean(both_left, 1, torch.tensor([RIGHT])).probs[0].argmax()) == LEFT
+    # the leader's moves, but STOP needs both plays: its log-probability stays the mean of the two
+    stopper = [0.1, 0.05, 0.05, 0.3, 0.5]  # own frame: LEFT 0.05 is the episode's RIGHT; STOP 0.5
+    led = mirror_mean(log_probs(own, stopper), 1, torch.tensor([LEFT])).probs[0]
+    # by hand: the mirror goes on (episode's LEFT 0.3 > RIGHT 0.05) and leads: [.1, .05, .3, .05] and STOP sqrt(.05 * .5)
+    unnormalised = [0.1, 0.05, 0.3, 0.05, math.sqrt(0.05 * 0.5)]
+    assert led.tolist() == pytest.approx([x / sum(unnormalised) for x in unnormalised])
+    assert int(led.argmax()) == LEFT  # alone, the mirror would have stopped
     # one row per episode: two episodes heading RIGHT and LEFT in one call
     rows = mirror_mean(log_probs(own, own, mirrored, mirrored), 2, torch.tensor([RIGHT, LEFT])).probs
     assert rows[0].tolist() == pytest.approx(own) and rows[1].tolist() == pytest.approx(mirrored_here)

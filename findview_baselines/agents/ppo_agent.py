@@ -81,9 +81,10 @@ def mirror_mean(logits: torch.Tensor, count: int, heading: torch.Tensor | None =
 
     ``heading``: (K,) long, each episode's last yaw move (``Action.LEFT`` / ``Action.RIGHT``; any other value:
     none yet). Where one play prefers turning back against it to going on and the other prefers going on, the one
-    going on leads: the episode gets that play's distribution alone. (A network that learned to search by turning one
-    way, say right, searches left in the mirror: once the episode turns one way, the play that turns that way by
-    itself searches as the network does, and the other, pulled the other way, would turn back and forth.)
+    going on leads: the episode gets that play's log-probabilities of the four moves, and STOP keeps the mean of the
+    two (stopping needs both plays; the result is normalised). (A network that learned to search by turning one way,
+    say right, searches left in the mirror: once the episode turns one way, the play that turns that way by itself
+    searches as the network does, and the other, pulled the other way, would turn back and forth.)
     """
     from torch.distributions import Categorical
 
@@ -101,6 +102,8 @@ def mirror_mean(logits: torch.Tensor, count: int, heading: torch.Tensor | None =
         mirrored_back = (mirrored.gather(1, back) > mirrored.gather(1, on)).squeeze(1)
         fused = torch.where((turning & mirrored_back & ~own_back).view(-1, 1), own, fused)
         fused = torch.where((turning & own_back & ~mirrored_back).view(-1, 1), mirrored, fused)
+        fused = fused.index_copy(1, torch.tensor([int(Action.STOP)], device=logits.device),
+                                 (own[:, Action.STOP] + mirrored[:, Action.STOP]).view(-1, 1) / 2)
     return Categorical(logits=fused)
 
 
