@@ -11,13 +11,8 @@ reference) and on, and their ratio; figures go to benchmarks/RESULTS.md.
 
 from __future__ import annotations
 
-import argparse
-import time
+from act_timing import act_options, median_act_ms
 
-import numpy as np
-import torch
-
-from findview.episode import Episode
 from findview_baselines.agents.ppo_agent import PPOAgent
 from findview_baselines.agents.stop_refine import StopRefiner
 
@@ -28,36 +23,11 @@ def ms_per_act(checkpoint: str, slots: int, size: int, steps: int, device: str, 
         checkpoint, slots, device, height=size, width=size, refiner=StopRefiner(slots, 90.0), fov=90.0,
         stop_by=100_000, stop_by_phase=phase,
     )
-    episodes = [Episode(f"e{i}", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=i) for i in range(slots)]
-    agent.reset(list(range(slots)), episodes)
-    gen = torch.Generator().manual_seed(0)
-    frames = [torch.randint(0, 256, (slots, 3, size, size), dtype=torch.uint8, generator=gen)
-              .contiguous(memory_format=torch.channels_last).to(device) for _ in range(4)]
-    target = frames[0]
-    times = []
-    for k in range(steps + 5):
-        obs = {"view": frames[1 + k % 3], "target": target}
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        t = time.perf_counter()
-        agent.act(obs)
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        if k >= 5:
-            times.append(time.perf_counter() - t)
-    return 1000.0 * float(np.median(times))
+    return median_act_ms(agent, slots, size, steps, device)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", default="pretrained/findview_sun360mini_indoor_robust.pth")
-    ap.add_argument("--slots", type=int, default=16)
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--device", default="cpu")
-    args = ap.parse_args()
-    torch.set_num_threads(args.threads)
+    args = act_options(__doc__)
     off = ms_per_act(args.checkpoint, args.slots, args.size, args.steps, args.device, phase=False)
     on = ms_per_act(args.checkpoint, args.slots, args.size, args.steps, args.device, phase=True)
     print(f"{args.slots} slots, {args.size}x{args.size} views, {args.threads} thread(s), {args.device}")

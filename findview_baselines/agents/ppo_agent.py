@@ -392,7 +392,8 @@ class PPOAgent(Agent):
         ``NaN`` for the slots the network did not decide for that step (already stopped or idle, a stop being
         refined, a ``stop_by`` walk back).
 
-        It is ``softmax(logits)[STOP]`` of the network's own distribution, before the search memory: without the
+        It is ``softmax(logits)[STOP]`` of the network's own distribution (with ``mirror_steps``, the one
+        :func:`mirror_mean` fused from the two plays), before the search memory: without the
         memory (``revisit_penalty=0``) that is the distribution the agent acted from; with it, the memory lowers
         only the moves and leaves the STOP decision to the network (its distribution puts exactly 0 or 1 on STOP,
         1 where the network's argmax is STOP), so this is the probability that decided STOP either way, the one
