@@ -501,6 +501,11 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *rows), rows), 2,
                            torch.device("cpu"))[0].revisits
     assert (revisits.rows.stride, revisits.rows.after, revisits.rows.budget) == (30, 1000, 720)
+    mirror = ["agent.mirror_steps=5000"]  # the mirror play reaches the agent; off unless given
+    played = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *mirror), mirror), 2,
+                         torch.device("cpu"))[0]
+    assert played.mirror_steps == 5000 and played.hidden_mirror.shape == played.hidden.shape
+    assert agent_for(ckpt, [], None).hidden_mirror is None
     assert agent_for(ckpt, ["agent.revisit_penalty=4"], 4.0).revisits.penalty == 4.0  # the command line wins
     assert agent_for(ckpt, ["agent.revisit_penalty=0"], 0.0).revisits is None  # 0 switches it off
     assert agent_for(tiny_ckpt, [], None).revisits is None  # a run without the key: the plain policy

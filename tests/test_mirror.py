@@ -161,3 +161,29 @@ def test_a_network_that_searches_turning_right_does_not_turn_back_and_forth_with
         moves.append(a)
         yaw += {RIGHT: 1, LEFT: -1}[a]
     assert moves == [RIGHT] * 100  # the first move: RIGHT at even yaw; after it the episode's own play leads
+
+
+def test_a_real_network_reading_its_memory_plays_its_mirror_for_the_first_steps():
+    """The learned network (the ``phase`` variant with search-memory inputs, as the robust files) acts with the mirror
+    on: every action is a valid move, the mirror's state moves for the first ``mirror_steps`` steps only, and a slot
+    whose episode restarts starts its mirror again."""
+    from findview_baselines.rl.policy import Policy
+    from findview_baselines.rl.search_memory import MEMORY_FEATURES
+
+    torch.manual_seed(0)
+    policy = Policy(64, 64, variant="phase", hidden_size=16, memory_inputs=MEMORY_FEATURES)
+    agent = PPOAgent(policy, 3, revisit_penalty=16.0, fov=90.0, mirror_steps=2)
+    gen = torch.Generator().manual_seed(1)
+    target = torch.randint(0, 256, (3, 3, 64, 64), dtype=torch.uint8, generator=gen)
+    states = []
+    for _ in range(4):
+        view = torch.randint(0, 256, (3, 3, 64, 64), dtype=torch.uint8, generator=gen)
+        actions = agent.act({"view": view, "target": target})
+        assert actions.shape == (3,) and bool(((actions >= 0) & (actions <= STOP)).all())
+        states.append(agent.hidden_mirror.clone())
+        agent.done[:] = False  # keep every slot acting
+    assert not torch.equal(states[0], states[1])  # steps 1 and 2 play the mirror
+    assert torch.equal(states[1], states[2]) and torch.equal(states[2], states[3])  # steps 3 and 4 do not
+    assert agent.policy_steps.tolist() == [4, 4, 4]
+    agent.reset([1], [None])
+    assert agent.policy_steps.tolist() == [4, 0, 4] and float(agent.hidden_mirror[1].abs().sum()) == 0.0
