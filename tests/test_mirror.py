@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
+from findview_baselines.agents.base import LEFT, RIGHT, STOP, UP
 from findview_baselines.agents.ppo_agent import PPOAgent, mirror_mean
 
 
