@@ -280,6 +280,12 @@ class PPOAgentConfig:
     1/3, 1/2 of ``fov``): a cue that the target is straight above or below (findview_baselines/rl/pitch_warps.py),
     through a layer that starts at zero (``init_from`` an agent without it starts unchanged). direct / robust /
     phase variants only. Part of the checkpoint signature."""
+    wide_match: bool = False
+    """The network also reads the zero-normalised cross-correlation of view and target over their overlap at every
+    shift, without a window (findview_baselines/rl/wide_match.py): which way a target lies that only overlaps the
+    edge of the view (45-70 degrees to the side at FoV 90), where the phase correlation's window hides it. Through a
+    layer that starts at zero (``init_from`` an agent without it starts unchanged). direct / robust / phase variants
+    only. Part of the checkpoint signature."""
     refine_stop: bool = False
     """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
     of the policy by phase correlation of view and target, and when the target is measured at least half a degree

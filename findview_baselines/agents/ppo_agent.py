@@ -284,7 +284,7 @@ class PPOAgent(Agent):
             height=h, width=w, variant=str(sig["variant"]), hidden_size=int(sig["hidden_size"]),
             fine_shifts=int(sig.get("fine_shifts", 0)), fine_scales=int(sig.get("fine_scales", 1)),
             memory_inputs=int(sig.get("memory_inputs", 0)), pitch_warps=int(sig.get("pitch_warps", 0)),
-            warp_fov=90.0 if fov is None else fov,
+            warp_fov=90.0 if fov is None else fov, wide_match=int(sig.get("wide_match", 0)),
         )
         check_signature(sig, policy.model_signature())
         try:

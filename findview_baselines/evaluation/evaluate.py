@@ -244,6 +244,7 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     model: dict[str, Any] = {k: sig[k] for k in _MODEL_KEYS if k in sig}
     model["memory_inputs"] = bool(sig.get("memory_inputs", 0))  # a width in the signature, a switch in the config
     model["pitch_warps"] = bool(sig.get("pitch_warps", 0))
+    model["wide_match"] = bool(sig.get("wide_match", 0))
     search = {k: trained_agent[k] for k in _SEARCH_KEYS if k in trained_agent and f"agent.{k}" not in given}
     # agent.fov (the refinement's degrees per pixel, the search memory's band) follows the FoV the views will have
     fov = {} if "agent.fov" in given else {"fov": float(view.get("fov", cfg.sim.fov))}

@@ -44,6 +44,10 @@ warped by six hypothesised pitch offsets (:class:`PitchWarpedPhase`, ``rl/pitch_
 target is straight above or below, enters through ``warp_proj`` (an MLP whose last layer starts at zero) added to
 the encoder's features; its scalars are part of :meth:`Policy.fixed_features`.
 
+Wide match (``wide_match``, the ``direct`` family only): the zero-normalised cross-correlation of view and target
+over their overlap at every shift, without a window (:class:`WideMatch`, ``rl/wide_match.py``), a direction cue for
+a target that only overlaps the view's edge, enters the same way through ``wide_proj``.
+
 Auxiliary rotation loss (any variant, training only): :class:`AuxHead` regresses ``(dpitch, dyaw) / fov``
 and classifies overlap from the features before the GRU (``Policy.forward_features``); see
 :func:`aux_loss`. The head is owned by the optimiser (PPO / DAgger), not by the policy, so policy
@@ -93,6 +97,7 @@ from findview_baselines.rl.encoders import (
 )
 from findview_baselines.rl.pitch_warps import WARP_FEATURES, PitchWarpedPhase
 from findview_baselines.rl.search_memory import MEMORY_FEATURES
+from findview_baselines.rl.wide_match import WIDE_FEATURES, WideMatch
 from findview_baselines.rl.signature import OPTIONAL_SIGNATURE_FIELDS, SIGNATURE_FIELDS, check_signature
 
 # width of the hidden layer that reads the pitch warps' scalars
@@ -191,8 +196,14 @@ class Policy(nn.Module):
         memory_inputs: int = 0,
         pitch_warps: int = 0,
         warp_fov: float = 90.0,
+        wide_match: int = 0,
     ) -> None:
         super().__init__()
+        if int(wide_match) not in (0, WIDE_FEATURES):
+            raise ValueError(f"wide_match must be 0 (off) or {WIDE_FEATURES} (the width of the wide match's features), "
+                             f"got {wide_match}")
+        if wide_match and variant not in ("direct", "robust", "phase"):
+            raise ValueError(f"wide_match needs one of the variants direct, robust, phase, got {variant!r}")
         if int(pitch_warps) not in (0, WARP_FEATURES):
             raise ValueError(f"pitch_warps must be 0 (off) or {WARP_FEATURES} (the width of the pitch-warped phase "
                              f"correlation's scalars), got {pitch_warps}")
@@ -247,6 +258,12 @@ class Policy(nn.Module):
         self.warp_proj = nn.Sequential(
             nn.Linear(self.pitch_warps, WARP_HIDDEN), nn.ReLU(), nn.Linear(WARP_HIDDEN, feature_size),
         ) if self.pitch_warps else None
+        # the wide match (rl/wide_match.py; parameter-free) through an MLP of the same shape, also starting at zero
+        self.wide_match = int(wide_match)
+        self.wide = WideMatch(height, width) if self.wide_match else None
+        self.wide_proj = nn.Sequential(
+            nn.Linear(self.wide_match, WARP_HIDDEN), nn.ReLU(), nn.Linear(WARP_HIDDEN, feature_size),
+        ) if self.wide_match else None
         self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
         self.critic = nn.Linear(hidden_size, 1)
@@ -307,7 +324,7 @@ class Policy(nn.Module):
         comparisons (``direct``, ``robust``, ``phase``: :meth:`DirectEncoder.fixed_inputs`); 0 for the others."""
         if not isinstance(self.encoder, DirectEncoder):
             return 0
-        return self.encoder.fixed_size + self.pitch_warps
+        return self.encoder.fixed_size + self.pitch_warps + self.wide_match
 
     def fixed_features(self, obs: Obs) -> torch.Tensor:
         """The encoder's parameter-free part: ``obs`` {"view", "target"} (B, 3, H, W) uint8 -> (B,
@@ -321,19 +338,28 @@ class Policy(nn.Module):
 
     def _direct_fixed(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """The ``direct`` family's parameter-free inputs: view, target (B, 3, H, W) float in [0, 1] -> (B,
-        :attr:`fixed_feature_size`): :meth:`DirectEncoder.fixed_inputs`, then the pitch warps' scalars if on."""
+        :attr:`fixed_feature_size`): :meth:`DirectEncoder.fixed_inputs`, then the pitch warps' scalars if on, then
+        the wide match's if on."""
         fixed = self.encoder.fixed_inputs(view, target)
-        if self.warp is None:
-            return fixed
-        return torch.cat([fixed, self.warp(view, target).to(fixed.dtype)], dim=1)
+        parts = [fixed]
+        if self.warp is not None:
+            parts.append(self.warp(view, target).to(fixed.dtype))
+        if self.wide is not None:
+            parts.append(self.wide(view, target).to(fixed.dtype))
+        return torch.cat(parts, dim=1) if len(parts) > 1 else fixed
 
     def _direct_head(self, fixed: torch.Tensor) -> torch.Tensor:
         """The ``direct`` family's learned part: :meth:`_direct_fixed`'s (B, :attr:`fixed_feature_size`) -> (B, F):
-        the encoder's head, plus the pitch warps through ``warp_proj`` if on."""
-        if self.warp_proj is None:
-            return self.encoder.head_forward(fixed)
+        the encoder's head, plus the pitch warps through ``warp_proj`` and the wide match through ``wide_proj`` if on."""
         split = self.encoder.fixed_size
-        return self.encoder.head_forward(fixed[:, :split]) + self.warp_proj(fixed[:, split:])
+        if self.warp_proj is None and self.wide_proj is None:
+            return self.encoder.head_forward(fixed)
+        out = self.encoder.head_forward(fixed[:, :split])
+        if self.warp_proj is not None:
+            out = out + self.warp_proj(fixed[:, split:split + self.pitch_warps])
+        if self.wide_proj is not None:
+            out = out + self.wide_proj(fixed[:, split + self.pitch_warps:])
+        return out
 
     def _init_weights(self) -> None:
         """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
@@ -352,6 +378,8 @@ class Policy(nn.Module):
             nn.init.zeros_(self.memory_proj.weight)
         if self.warp_proj is not None:
             nn.init.zeros_(self.warp_proj[-1].weight)
+        if self.wide_proj is not None:
+            nn.init.zeros_(self.wide_proj[-1].weight)
 
     # ---------------------------------------------------------------------------------------------
 
@@ -367,6 +395,8 @@ class Policy(nn.Module):
             sig["memory_inputs"] = self.memory_inputs
         if self.pitch_warps:
             sig["pitch_warps"] = self.pitch_warps
+        if self.wide_match:
+            sig["wide_match"] = self.wide_match
         return sig
 
     @property
@@ -552,10 +582,11 @@ class Policy(nn.Module):
 def build_policy(agent: "PPOAgentConfig", height: int, width: int) -> Policy:
     """Policy from the ``agent`` section (:class:`findview_baselines.config.PPOAgentConfig`: ``variant``,
     ``hidden_size``, ``fine_shifts``, ``fine_scales``, ``memory_inputs``, ``pitch_warps`` (for views of ``fov``
-    degrees); speed options ``precision``, ``channels_last``,
+    degrees), ``wide_match``; speed options ``precision``, ``channels_last``,
     ``compile``, see :meth:`Policy.configure_speed`) and the view size of ``sim`` (pixels)."""
     policy = Policy(height=int(height), width=int(width), variant=agent.variant, hidden_size=agent.hidden_size,
                     fine_shifts=agent.fine_shifts, fine_scales=agent.fine_scales,
                     memory_inputs=MEMORY_FEATURES if agent.memory_inputs else 0,
-                    pitch_warps=WARP_FEATURES if agent.pitch_warps else 0, warp_fov=agent.fov)
+                    pitch_warps=WARP_FEATURES if agent.pitch_warps else 0, warp_fov=agent.fov,
+                    wide_match=WIDE_FEATURES if agent.wide_match else 0)
     return policy.configure_speed(precision=agent.precision, channels_last=agent.channels_last, compile=agent.compile)

@@ -10,10 +10,11 @@ __all__ = ["SIGNATURE_FIELDS", "OPTIONAL_SIGNATURE_FIELDS", "GROWABLE_FIELDS", "
 
 SIGNATURE_FIELDS = ("variant", "hidden_size", "height", "width")
 # signature fields added later, with the value a checkpoint that lacks them was trained with
-OPTIONAL_SIGNATURE_FIELDS = {"fine_shifts": 0, "fine_scales": 1, "memory_inputs": 0, "pitch_warps": 0}
+OPTIONAL_SIGNATURE_FIELDS = {"fine_shifts": 0, "fine_scales": 1, "memory_inputs": 0, "pitch_warps": 0,
+                             "wide_match": 0}
 # optional fields whose added parameters start at zero, each with the policy module that holds them: a checkpoint
 # without them (0) may initialise a model with them (``init_from``; the model then starts as the saved one)
-GROWABLE_FIELDS = {"memory_inputs": "memory_proj", "pitch_warps": "warp_proj"}
+GROWABLE_FIELDS = {"memory_inputs": "memory_proj", "pitch_warps": "warp_proj", "wide_match": "wide_proj"}
 # variants with the same parameters (names and shapes) that differ only in how they prepare their inputs:
 # weights of one may initialise the other (``init_from``), never be evaluated or resumed as the other
 TRANSFERABLE_VARIANTS = (frozenset({"direct", "robust"}),)
