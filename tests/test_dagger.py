@@ -872,3 +872,26 @@ def test_overlapped_update_raises_the_rollouts_error_and_honours_a_stop_before_i
     trainer._collect = broken
     with pytest.raises(RuntimeError, match="rollout thread"):
         trainer.train_update()
+
+
+def test_train_only_moves_the_named_modules_alone(panoramas) -> None:
+    """``train_only=[wide_proj]``: after an update the wide match's projection has moved and every other weight
+    is bit for bit what it was; a name that is no module of the policy is refused with the modules it has."""
+    from findview_baselines.rl.wide_match import WIDE_FEATURES
+
+    with pytest.raises(ValueError, match="train_only"):
+        DAggerConfig(train_only=[])
+    torch.manual_seed(0)
+    policy = Policy(32, 32, variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2, wide_match=WIDE_FEATURES)
+    with pytest.raises(ValueError, match="no module 'wide'.*wide_proj"):
+        DAggerTrainer(sampled_env(panoramas, 4, 32, 20, 200, seed=7), policy, DAggerConfig(train_only=["wide"]),
+                      total_updates=10)
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    cfg = DAggerConfig(rollout_steps=16, seq_len=8, buffer_size=200, batch_sequences=4, beta_end=0.5,
+                       train_only=["wide_proj"])
+    trainer = DAggerTrainer(sampled_env(panoramas, 4, 32, 20, 200, seed=7), policy, cfg, total_updates=10)
+    trainer.start()
+    trainer.train_update()
+    trainer.train_update()
+    moved = {k for k, v in policy.state_dict().items() if not torch.equal(v, before[k])}
+    assert moved and all(k.startswith("wide_proj.") for k in moved), moved

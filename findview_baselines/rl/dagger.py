@@ -177,7 +177,7 @@ class DAggerTrainer(Trainer):
     ) -> None:
         super().__init__(env, policy, cfg, total_updates, scheduler, set_level)
         self.aux_head: AuxHead | None = AuxHead(policy.feature_size).to(self.device) if cfg.aux_coef > 0 else None
-        self.params = list(policy.parameters()) + (list(self.aux_head.parameters()) if self.aux_head else [])
+        self.params = self._trained_parameters(policy, cfg.train_only) + (list(self.aux_head.parameters()) if self.aux_head else [])
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, eps=cfg.adam_eps)
         self.lr = cfg.lr
         n, dev = env.num_envs, self.device
@@ -228,6 +228,24 @@ class DAggerTrainer(Trainer):
                              "it needs agent.memory_inputs=true")
 
     # ---------------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _trained_parameters(policy: nn.Module, train_only: list[str] | None) -> list[nn.Parameter]:
+        """The policy's parameters the optimiser moves: all, or those of the modules ``train_only`` names
+        (``trainer.dagger.train_only``); a name that matches no parameter is an error naming the modules there are."""
+        if train_only is None:
+            return list(policy.parameters())
+        named = dict(policy.named_parameters())
+        chosen: list[nn.Parameter] = []
+        for name in train_only:
+            prefix = name.rstrip(".") + "."
+            found = [p for key, p in named.items() if key.startswith(prefix)]
+            if not found:
+                modules = sorted({key.split(".")[0] for key in named})
+                raise ValueError(f"trainer.dagger.train_only: the policy has no module {name!r} with weights; "
+                                 f"its modules: {', '.join(modules)}")
+            chosen += [p for p in found if all(p is not c for c in chosen)]
+        return chosen
 
     def _set_obs(self, obs: Mapping[str, torch.Tensor]) -> None:
         self.view.copy_(obs["view"])

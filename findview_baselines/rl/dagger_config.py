@@ -5,6 +5,7 @@ update). The trainer that uses them is ``dagger.py``."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 from findview.config import ConfigError
 from findview.task.oracle import ORDERS, SEARCH_PRIORS
@@ -106,6 +107,11 @@ class DAggerConfig:
     """The learner executes sampled actions (true) or its argmax, as at evaluation (false)."""
     aux_coef: float = 0.0
     """Weight of the auxiliary rotation / overlap loss (0 = off)."""
+    train_only: Optional[list[str]] = None
+    """Train only these parts of the policy: names of its modules (prefixes of parameter names, e.g. ``[wide_proj]``,
+    ``[wide_proj, actor]``); the other weights keep the values ``init_from`` gave them. null = every weight. The
+    auxiliary head (``aux_coef``) trains either way. For a zero-started input (``agent.wide_match``) added to a
+    finished agent: a higher learning rate there cannot disturb what the rest has learned."""
     save_buffer: bool = True
     """Store the buffer in ``state_dict`` (exact resume, large checkpoints); false: a resume refills it."""
     cache_fixed_features: bool = True
@@ -145,6 +151,9 @@ class DAggerConfig:
         for name in ("stop_weight", "max_grad_norm"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"trainer.dagger.{name} must be positive, got {getattr(self, name)!r}")
+        if self.train_only is not None and (not self.train_only or not all(isinstance(n, str) and n for n in self.train_only)):
+            raise ConfigError(f"trainer.dagger.train_only must be null (every weight) or a non-empty list of module names, "
+                              f"got {self.train_only!r}")
         if self.aux_coef < 0:
             raise ConfigError(f"trainer.dagger.aux_coef must be 0 (off) or positive, got {self.aux_coef!r}")
         if self.search_prior not in SEARCH_PRIORS:
