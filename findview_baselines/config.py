@@ -285,7 +285,8 @@ class PPOAgentConfig:
     shift, without a window (findview_baselines/rl/wide_match.py): which way a target lies that only overlaps the
     edge of the view (45-70 degrees to the side at FoV 90), where the phase correlation's window hides it. Through a
     layer that starts at zero (``init_from`` an agent without it starts unchanged). direct / robust / phase variants
-    only. Part of the checkpoint signature."""
+    only. Part of the checkpoint signature. No shipped file uses it: fine-tunes of the FoV-90 robust file with it
+    did not change which way the network turns first (benchmarks/RESULTS.md, "Session 39")."""
     refine_stop: bool = False
     """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
     of the policy by phase correlation of view and target, and when the target is measured at least half a degree
