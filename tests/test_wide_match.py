@@ -7,9 +7,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from _growable import check_grows_from_a_checkpoint_without_it
 from findview.sim.equi2pers import equi2pers
 from findview_baselines.agents.ppo_agent import PPOAgent
-from findview_baselines.rl.checkpoint import CheckpointError, checkpoint_payload, load_policy, save_checkpoint
+from findview_baselines.rl.checkpoint import checkpoint_payload, save_checkpoint
 from findview_baselines.rl.policy import Policy
 from findview_baselines.rl.wide_match import LOW, MIN_OVERLAP, WIDE_BINS, WIDE_FEATURES, WideMatch, overlap_zncc
 
@@ -123,28 +124,8 @@ def small_policy(wide_match: int = WIDE_FEATURES) -> Policy:
 
 
 def test_the_policy_grows_the_wide_match_from_a_checkpoint_without_it(tmp_path) -> None:
-    plain = small_policy(0)
-    path = save_checkpoint(tmp_path / "plain.pth", {"signature": plain.model_signature(), "policy": plain.state_dict()})
     grown = small_policy()
-    assert grown.model_signature()["wide_match"] == WIDE_FEATURES
-    assert grown.fixed_feature_size == plain.fixed_feature_size + WIDE_FEATURES
-    with pytest.raises(CheckpointError, match=f"wide_match is 0 in the checkpoint but {WIDE_FEATURES}"):
-        load_policy(path, grown)  # evaluating / resuming needs the same model
-    load_policy(path, grown, transfer=True)  # init_from: the last layer starts at zero
-    gen = torch.Generator().manual_seed(1)
-    obs = {k: torch.randint(0, 256, (4, 3, 64, 64), dtype=torch.uint8, generator=gen) for k in ("view", "target")}
-    hidden, masks = torch.zeros(4, 16), torch.ones(4)
-    with torch.no_grad():
-        d0, v0, _ = plain(obs, hidden, masks)
-        d1, v1, _ = grown(obs, hidden, masks)
-        f_fixed = grown.features(None, fixed=grown.fixed_features(obs))
-        f_obs = grown.features(obs)
-    assert torch.allclose(d0.logits, d1.logits) and torch.allclose(v0, v1)
-    torch.testing.assert_close(f_obs, f_fixed)
-    with torch.no_grad():
-        grown.wide_proj[-1].weight.fill_(0.5)
-        d2, _, _ = grown(obs, hidden, masks)
-    assert not torch.allclose(d1.logits, d2.logits)
+    check_grows_from_a_checkpoint_without_it(tmp_path, small_policy(0), grown, "wide_match", WIDE_FEATURES, grown.wide_proj)
     with pytest.raises(ValueError, match="wide_match must be 0"):
         small_policy(3)
     with pytest.raises(ValueError, match="wide_match needs one of the variants"):
