@@ -236,7 +236,7 @@ class DAggerTrainer(Trainer):
         if train_only is None:
             return list(policy.parameters())
         named = dict(policy.named_parameters())
-        chosen: list[nn.Parameter] = []
+        chosen: dict[int, nn.Parameter] = {}  # by identity: a module named twice (or inside another) counts once
         for name in train_only:
             prefix = name.rstrip(".") + "."
             found = [p for key, p in named.items() if key.startswith(prefix)]
@@ -244,8 +244,8 @@ class DAggerTrainer(Trainer):
                 modules = sorted({key.split(".")[0] for key in named})
                 raise ValueError(f"trainer.dagger.train_only: the policy has no module {name!r} with weights; "
                                  f"its modules: {', '.join(modules)}")
-            chosen += [p for p in found if all(p is not c for c in chosen)]
-        return chosen
+            chosen.update((id(p), p) for p in found)
+        return list(chosen.values())
 
     def _set_obs(self, obs: Mapping[str, torch.Tensor]) -> None:
         self.view.copy_(obs["view"])

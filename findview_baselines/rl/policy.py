@@ -167,6 +167,15 @@ def _to_float(image: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------------------------------
 
 
+def _check_direct_input(name: str, width: int, expected: int, what: str, variant: str) -> None:
+    """An optional input of the ``direct`` family (``pitch_warps``, ``wide_match``): ``width`` must be 0 (off) or
+    ``expected`` (the width of ``what``), and on only with one of the variants direct, robust, phase."""
+    if int(width) not in (0, expected):
+        raise ValueError(f"{name} must be 0 (off) or {expected} (the width of {what}), got {width}")
+    if width and variant not in ("direct", "robust", "phase"):
+        raise ValueError(f"{name} needs one of the variants direct, robust, phase, got {variant!r}")
+
+
 class Policy(nn.Module):
     """Encoder(s) + single-layer GRU + actor/critic heads.
 
@@ -199,16 +208,9 @@ class Policy(nn.Module):
         wide_match: int = 0,
     ) -> None:
         super().__init__()
-        if int(wide_match) not in (0, WIDE_FEATURES):
-            raise ValueError(f"wide_match must be 0 (off) or {WIDE_FEATURES} (the width of the wide match's features), "
-                             f"got {wide_match}")
-        if wide_match and variant not in ("direct", "robust", "phase"):
-            raise ValueError(f"wide_match needs one of the variants direct, robust, phase, got {variant!r}")
-        if int(pitch_warps) not in (0, WARP_FEATURES):
-            raise ValueError(f"pitch_warps must be 0 (off) or {WARP_FEATURES} (the width of the pitch-warped phase "
-                             f"correlation's scalars), got {pitch_warps}")
-        if pitch_warps and variant not in ("direct", "robust", "phase"):
-            raise ValueError(f"pitch_warps needs one of the variants direct, robust, phase, got {variant!r}")
+        _check_direct_input("wide_match", wide_match, WIDE_FEATURES, "the wide match's features", variant)
+        _check_direct_input("pitch_warps", pitch_warps, WARP_FEATURES, "the pitch-warped phase correlation's scalars",
+                            variant)
         if int(memory_inputs) not in (0, MEMORY_FEATURES):
             raise ValueError(f"memory_inputs must be 0 (off) or {MEMORY_FEATURES} (the width of the search memory's "
                              f"features), got {memory_inputs}")
@@ -352,8 +354,6 @@ class Policy(nn.Module):
         """The ``direct`` family's learned part: :meth:`_direct_fixed`'s (B, :attr:`fixed_feature_size`) -> (B, F):
         the encoder's head, plus the pitch warps through ``warp_proj`` and the wide match through ``wide_proj`` if on."""
         split = self.encoder.fixed_size
-        if self.warp_proj is None and self.wide_proj is None:
-            return self.encoder.head_forward(fixed)
         out = self.encoder.head_forward(fixed[:, :split])
         if self.warp_proj is not None:
             out = out + self.warp_proj(fixed[:, split:split + self.pitch_warps])
