@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from _training import write_panoramas
+from findview.config import ConfigError
 from findview.dataset import EpisodeSampler, ImageEntry
 from findview.geometry import l1_distance, wrap_yaw
 from findview.sim import PanoramaBank, Simulator
@@ -425,6 +426,41 @@ def test_search_weight_marks_exactly_the_no_overlap_steps(panoramas) -> None:
     only_right = (labels.int() == torch.tensor([0, 0, 0, 1, 0])).all(dim=1)
     assert torch.equal(searching, only_right & searching)  # every down-weighted step is a pure "pan right"
     assert trainer.buffer.state_dict()["weights"].shape == (n, 8)
+
+
+def test_first_steps_weigh_first_steps_weight_times_their_weight(panoramas) -> None:
+    """first_steps=2, first_steps_weight=3 with search_weight=0.25: a step weighs 3 or 0.75 iff it is its episode's
+    first or second step (read from the buffer's masks, 0 where an episode begins), else 1 or 0.25."""
+    torch.manual_seed(0)
+    env = sampled_env(panoramas, 4, 32, 20, 200, seed=6)
+    env.source.level = 3
+    policy = Policy(32, 32, variant="direct", hidden_size=16, fine_shifts=1, fine_scales=2)
+    cfg = DAggerConfig(rollout_steps=32, seq_len=8, buffer_size=2000, batch_sequences=4, beta_end=1.0,
+                       search_prior="pan", labels="set", search_weight=0.25, first_steps=2, first_steps_weight=3.0)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=10)
+    trainer.start()
+    for _ in range(3):
+        trainer.train_update()
+    n = len(trainer.buffer)
+    weights, masks = trainer.buffer.weights[:n], trainer.buffer.masks[:n]  # (chunks, 8)
+    starts = masks == 0
+    assert int(starts.sum()) >= 4  # episodes began inside the rollouts (the first of each slot, then more)
+    second = torch.zeros_like(starts)
+    second[:, 1:] = starts[:, :-1]
+    first = weights.isclose(torch.tensor(3.0)) | weights.isclose(torch.tensor(0.75))
+    assert torch.equal(first & (starts | second), starts | second)
+    # every other step inside a chunk keeps its weight; a chunk's step 0 may be the second of an episode begun before
+    inner = ~(starts | second)
+    inner[:, 0] = False
+    assert not bool(first[inner].any())
+    assert bool(weights[inner].isclose(torch.tensor(1.0)).any()) and bool(weights[inner].isclose(torch.tensor(0.25)).any())
+
+
+def test_first_steps_config_is_validated() -> None:
+    with pytest.raises(ConfigError, match="first_steps must be >= 0"):
+        DAggerConfig(first_steps=-1)
+    with pytest.raises(ConfigError, match="first_steps_weight must be positive"):
+        DAggerConfig(first_steps=2, first_steps_weight=0.0)
 
 
 @pytest.mark.parametrize("yaw_band", [1.0, 0.5])

@@ -327,6 +327,8 @@ class DAggerTrainer(Trainer):
                 penalty[t] = pen if cfg.penalised_loss == "moves" else pen * leave[:, None].to(pen.dtype)
             labels[t].copy_(label)
             weights[t].masked_fill_(searching, cfg.search_weight)
+            if cfg.first_steps:  # the episode's first moves weigh first_steps_weight times as much
+                weights[t].mul_(torch.where(env.steps.to(dev) < cfg.first_steps, cfg.first_steps_weight, 1.0))
             if aux is not None:
                 aux[t].copy_(rotation_labels(env).to(dev))
             t0 = time.perf_counter()

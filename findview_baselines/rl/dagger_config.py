@@ -84,6 +84,13 @@ class DAggerConfig:
     the memory has not looked around, ``+s, -s, +2s, -2s`` from the start (``s`` half a FoV), the first of a ring on
     the target's side of the start: apart from that one side, the whole search is a function of the network's
     inputs."""
+    first_steps: int = 0
+    """The first ``first_steps`` steps of every episode (env steps 0 .. first_steps - 1) have their loss weight
+    multiplied by ``first_steps_weight``. The first moves decide which way round the agent goes, and they are a
+    handful of an episode's hundred-odd labelled steps; 0 = off."""
+    first_steps_weight: float = 1.0
+    """The factor on the first ``first_steps`` steps' loss weight (times ``search_weight`` where the views do not
+    overlap)."""
     memory_warm_start: float = 0.0
     """With ``agent.memory_inputs``: the share of new training episodes whose search memory starts as if the agent
     had already looked around its start row a full turn, so the labels ask it to leave the row from the first step
@@ -148,7 +155,9 @@ class DAggerConfig:
             raise ConfigError(f"trainer.dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
         if self.search_weight <= 0:
             raise ConfigError(f"trainer.dagger.search_weight must be positive, got {self.search_weight!r}")
-        for name in ("stop_weight", "max_grad_norm"):
+        if self.first_steps < 0:
+            raise ConfigError(f"trainer.dagger.first_steps must be >= 0 env steps (0 = off), got {self.first_steps!r}")
+        for name in ("stop_weight", "max_grad_norm", "first_steps_weight"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"trainer.dagger.{name} must be positive, got {getattr(self, name)!r}")
         if self.train_only is not None and (not self.train_only or not all(isinstance(n, str) and n for n in self.train_only)):
