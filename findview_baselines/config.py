@@ -287,6 +287,11 @@ class PPOAgentConfig:
     layer that starts at zero (``init_from`` an agent without it starts unchanged). direct / robust / phase variants
     only. Part of the checkpoint signature. No shipped file uses it: fine-tunes of the FoV-90 robust file with it
     did not change which way the network turns first (benchmarks/RESULTS.md, "Session 39")."""
+    wide_match_steps: int = 0
+    """At evaluation (as ``mirror_steps``), with a network that reads the wide match: it speaks only in the first this
+    many policy steps of an episode, where it tells which way a target at the edge of the view lies; later steps add
+    nothing from it (for a network of which only the wide match's layer trained, ``train_only=[wide_proj]``: the
+    network it started from, with the GRU state those first steps left). 0 = every step."""
     refine_stop: bool = False
     """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
     of the policy by phase correlation of view and target, and when the target is measured at least half a degree
@@ -386,6 +391,8 @@ class PPOAgentConfig:
         check(not self.stop_by_phase or self.stop_by > 0, "agent.stop_by", self.stop_by,
               "a step number (T) with agent.stop_by_phase=true")
         check(self.mirror_steps >= 0, "agent.mirror_steps", self.mirror_steps, "0 (off) or a number of policy steps")
+        check(self.wide_match_steps >= 0, "agent.wide_match_steps", self.wide_match_steps,
+              "0 (every step) or a number of policy steps")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
         check(not self.memory_inputs or self.revisit_penalty > 0, "agent.revisit_penalty", self.revisit_penalty,

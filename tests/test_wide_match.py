@@ -11,7 +11,7 @@ from _growable import check_grows_from_a_checkpoint_without_it
 from findview.sim.equi2pers import equi2pers
 from findview_baselines.agents.ppo_agent import PPOAgent
 from findview_baselines.rl.checkpoint import checkpoint_payload, save_checkpoint
-from findview_baselines.rl.policy import Policy
+from findview_baselines.rl.policy import WIDE_ON, Policy
 from findview_baselines.rl.wide_match import LOW, MIN_OVERLAP, WIDE_BINS, WIDE_FEATURES, WideMatch, overlap_zncc
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -166,3 +166,77 @@ def test_the_config_switch_builds_the_wide_match() -> None:
     off = build_policy(PPOAgentConfig(variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2), 64, 64)
     assert on.wide_match == WIDE_FEATURES and isinstance(on.wide, WideMatch)
     assert off.wide_match == 0 and off.wide is None and "wide_match" not in off.model_signature()
+
+
+def test_wide_on_rows_add_the_wide_match_and_the_others_nothing() -> None:
+    """``obs[WIDE_ON]`` (agent.wide_match_steps): a row marked off gets the features of the network without the
+    wide match's layer (its output zeroed by hand), a row marked on those of the ungated network."""
+    policy = small_policy()
+    with torch.no_grad():
+        policy.wide_proj[-1].weight.normal_(0, 0.5)  # a trained layer: its output is not zero
+        policy.wide_proj[-1].bias.fill_(0.2)
+    gen = torch.Generator().manual_seed(3)
+    obs = {k: torch.randint(0, 256, (3, 3, 64, 64), dtype=torch.uint8, generator=gen) for k in ("view", "target")}
+    with torch.no_grad():
+        on = policy.encode(obs)
+        gated = policy.encode({**obs, WIDE_ON: torch.tensor([True, False, True])})
+        fixed = policy.fixed_features(obs)
+        without = policy.encoder.head_forward(fixed[:, :policy.encoder.fixed_size])
+    assert not torch.allclose(on, without, atol=1e-3)
+    torch.testing.assert_close(gated[[0, 2]], on[[0, 2]])
+    torch.testing.assert_close(gated[1], without[1])
+
+
+class GateSpy(torch.nn.Module):
+    """A stand-in network that records the ``WIDE_ON`` rows it is given and always turns right."""
+
+    wide_match = WIDE_FEATURES
+    height = width = 8
+    memory_inputs = 0
+    heavy = False
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[list[bool]] = []
+
+    def initial_hidden(self, n: int, device=None) -> torch.Tensor:
+        return torch.zeros(n, 2, device=device)
+
+    def forward(self, obs, hidden, masks, memory=None):
+        from torch.distributions import Categorical
+
+        self.seen.append(obs[WIDE_ON].tolist())
+        logits = torch.tensor([[0.0, 0.0, 0.0, 5.0, 0.0]]).expand(len(obs["view"]), 5)
+        return Categorical(logits=logits), None, hidden
+
+
+@pytest.mark.parametrize("mirror_steps", [0, 2])
+def test_the_agent_turns_the_wide_match_on_for_its_first_steps_only(mirror_steps: int) -> None:
+    spy = GateSpy()
+    agent = PPOAgent(spy, 2, wide_match_steps=3, mirror_steps=mirror_steps)
+    obs = {k: torch.zeros(2, 3, 8, 8, dtype=torch.uint8) for k in ("view", "target")}
+    for _ in range(4):
+        agent.act(obs)
+    agent.reset([1], [None])  # slot 1 begins a new episode: steps 1-3 again
+    agent.done[:] = False
+    for _ in range(2):
+        agent.act(obs)
+    own = [rows[:2] for rows in spy.seen]
+    assert own == [[True, True]] * 3 + [[False, False], [False, True], [False, True]]
+    # the mirror rows (steps 1..mirror_steps of a slot) follow their episode's step
+    mirrors = [rows[2:] for rows in spy.seen]
+    if mirror_steps:
+        assert mirrors == [[True, True], [True, True], [], [], [True], [True]]
+    else:
+        assert mirrors == [[]] * 6
+
+
+def test_wide_match_steps_needs_a_network_that_reads_the_wide_match() -> None:
+    from findview_baselines.config import PPOAgentConfig
+
+    with pytest.raises(ValueError, match="wide_match_steps=5 needs a network that reads the wide match"):
+        PPOAgent(small_policy(0), 1, wide_match_steps=5)
+    with pytest.raises(ValueError, match="wide_match_steps must be >= 0"):
+        PPOAgent(small_policy(), 1, wide_match_steps=-1)
+    with pytest.raises(ValueError, match="agent.wide_match_steps"):
+        PPOAgentConfig(wide_match_steps=-2)

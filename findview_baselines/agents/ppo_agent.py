@@ -59,6 +59,7 @@ from findview_baselines.agents.base import STOP, Agent, episode_rng
 from findview_baselines.agents.give_up import GiveUp
 from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.observations import area_downsample, downsample_factor
+from findview_baselines.rl.policy import WIDE_ON
 from findview_baselines.rl.search_memory import NearVisits, RowSearch, make_revisit_penalty, memory_band
 
 if TYPE_CHECKING:
@@ -171,6 +172,7 @@ class PPOAgent(Agent):
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
         mirror_steps: int = 0,
+        wide_match_steps: int = 0,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -188,6 +190,12 @@ class PPOAgent(Agent):
         if int(mirror_steps) < 0:
             raise ValueError(f"mirror_steps must be >= 0 policy steps (0 = off), got {mirror_steps}")
         self.mirror_steps = int(mirror_steps)
+        if int(wide_match_steps) < 0:
+            raise ValueError(f"wide_match_steps must be >= 0 policy steps (0 = every step), got {wide_match_steps}")
+        if int(wide_match_steps) and not getattr(policy, "wide_match", 0):
+            raise ValueError(f"wide_match_steps={wide_match_steps} needs a network that reads the wide match "
+                             f"(agent.wide_match, wide_match in its checkpoint signature); this one does not")
+        self.wide_match_steps = int(wide_match_steps)
         # the mirrored episodes' GRU states (mirror_steps), None without them
         self.hidden_mirror = policy.initial_hidden(self.num_envs, self.device) if self.mirror_steps else None
         # each slot's policy steps so far in its episode, and its last yaw move (Action.LEFT / RIGHT; -1: none
@@ -246,6 +254,7 @@ class PPOAgent(Agent):
         stop_by_phase: bool = False,
         revisit_near: NearVisits = NearVisits(),
         mirror_steps: int = 0,
+        wide_match_steps: int = 0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -293,7 +302,7 @@ class PPOAgent(Agent):
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_rows, refiner, stop_prob, fov,
-            stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps,
+            stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps, wide_match_steps,
         )
 
     @classmethod
@@ -320,6 +329,7 @@ class PPOAgent(Agent):
             refiner=_refiner(cfg, num_envs, width) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
             stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), mirror_steps=cfg.mirror_steps,
+            wide_match_steps=cfg.wide_match_steps,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -469,11 +479,16 @@ class PPOAgent(Agent):
         count = len(idx)
         masks = torch.ones(count, device=self.device)
         self.policy_steps[idx] += 1
+        obs = {"view": view, "target": target}
+        if self.wide_match_steps:  # the wide match speaks in each episode's first wide_match_steps steps only
+            obs[WIDE_ON] = self.policy_steps[idx] <= self.wide_match_steps
         if self.hidden_mirror is None:
-            dist, _, h_new = self.policy({"view": view, "target": target}, hidden, masks, memory=memory)
+            dist, _, h_new = self.policy(obs, hidden, masks, memory=memory)
             return dist, h_new
         rows = torch.nonzero(self.policy_steps[idx] <= self.mirror_steps).flatten()  # rows whose mirror plays
         both = {"view": torch.cat([view, view[rows].flip(-1)]), "target": torch.cat([target, target[rows].flip(-1)])}
+        if WIDE_ON in obs:  # a mirror row is on the same step as its episode
+            both[WIDE_ON] = torch.cat([obs[WIDE_ON], obs[WIDE_ON][rows]])
         dist, _, h_all = self.policy(both, torch.cat([hidden, self.hidden_mirror[idx[rows]]]), masks.new_ones(count + len(rows)),
                                      memory=None if memory is None else torch.cat([memory, memory[rows]]))
         logits = dist.logits[:count]

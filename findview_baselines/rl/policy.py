@@ -153,6 +153,9 @@ HEAVY_MIN_PIXELS = 128 * 128
 PRECISIONS = ("fp32", "bf16")  # agent.precision: the encoder's compute dtype (see Policy.configure_speed)
 
 Obs = Mapping[str, torch.Tensor]
+WIDE_ON = "wide_on"
+"""An optional observation key: (B,) bool, the rows whose wide match speaks (``agent.wide_match_steps``); the other
+rows' wide-match contribution is zero. Absent: every row's speaks."""
 
 
 def _to_float(image: torch.Tensor) -> torch.Tensor:
@@ -350,15 +353,17 @@ class Policy(nn.Module):
             parts.append(self.wide(view, target).to(fixed.dtype))
         return torch.cat(parts, dim=1) if len(parts) > 1 else fixed
 
-    def _direct_head(self, fixed: torch.Tensor) -> torch.Tensor:
+    def _direct_head(self, fixed: torch.Tensor, wide_on: torch.Tensor | None = None) -> torch.Tensor:
         """The ``direct`` family's learned part: :meth:`_direct_fixed`'s (B, :attr:`fixed_feature_size`) -> (B, F):
-        the encoder's head, plus the pitch warps through ``warp_proj`` and the wide match through ``wide_proj`` if on."""
+        the encoder's head, plus the pitch warps through ``warp_proj`` and the wide match through ``wide_proj`` if on.
+        ``wide_on``: (B,) bool, the rows that add the wide match (``None``: all of them; :data:`WIDE_ON`)."""
         split = self.encoder.fixed_size
         out = self.encoder.head_forward(fixed[:, :split])
         if self.warp_proj is not None:
             out = out + self.warp_proj(fixed[:, split:split + self.pitch_warps])
         if self.wide_proj is not None:
-            out = out + self.wide_proj(fixed[:, split + self.pitch_warps:])
+            wide = self.wide_proj(fixed[:, split + self.pitch_warps:])
+            out = out + (wide if wide_on is None else wide * wide_on[:, None].to(wide.dtype))
         return out
 
     def _init_weights(self) -> None:
@@ -425,7 +430,7 @@ class Policy(nn.Module):
         if self.variant not in CONV_VARIANTS:  # the FINE_VARIANTS take both images together
             target = self._prepare(obs["target"])
             if isinstance(self.encoder, DirectEncoder):
-                return self._direct_head(self._direct_fixed(view, target))
+                return self._direct_head(self._direct_fixed(view, target), obs.get(WIDE_ON))
             return self.encoder(view, target)
         # the work that depends on the target alone runs once per distinct target (a rollout repeats each
         # episode's target on every step; see rl/distinct.py): the same features and gradients, less work
