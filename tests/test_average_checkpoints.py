@@ -67,8 +67,8 @@ def test_other_networks_are_refused_by_name(tmp_path: Path) -> None:
     wide = write(tmp_path, "wide.pth", small_policy(1, hidden_size=32))
     with pytest.raises(CheckpointError, match=r"wide.pth against .*a.pth: other model signatures \(differ in hidden_size\)"):
         average_checkpoints([a, wide])
-    with pytest.raises(ValueError, match="at least two checkpoints, got 1"):
-        average_checkpoints([a])
+    with pytest.raises(ValueError, match="at least one checkpoint, got none"):
+        average_checkpoints([])
     text = tmp_path / "notes.pth"
     text.write_text("not weights")
     with pytest.raises(CheckpointError, match="notes.pth: not a findview checkpoint"):
@@ -96,7 +96,12 @@ def test_the_tool_writes_once_and_refuses_bad_input(tmp_path: Path) -> None:
     refused = run(str(a), str(wide), "--out", str(tmp_path / "x.pth"))
     assert refused.returncode == 2 and "other model signatures" in refused.stderr
     assert not (tmp_path / "x.pth").exists()
+    # one input: its weights bit for bit, its signature and config, no resume state (a file to ship)
     alone = run(str(a), "--out", str(tmp_path / "z.pth"))
-    assert alone.returncode == 2 and "at least two checkpoints, got 1" in alone.stderr
+    assert alone.returncode == 0 and "copied the weights" in alone.stdout, alone.stderr
+    copy, original = torch.load(tmp_path / "z.pth", weights_only=True), torch.load(a, weights_only=True)
+    assert copy["policy"].keys() == original["policy"].keys()
+    assert all(torch.equal(copy["policy"][k], v) for k, v in original["policy"].items())
+    assert copy["signature"] == original["signature"] and copy["trainer"] is None
     missing = run(str(a), str(tmp_path / "nope.pth"), "--out", str(tmp_path / "y.pth"))
     assert missing.returncode == 2 and "checkpoint not found" in missing.stderr

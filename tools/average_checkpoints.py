@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Average the policy weights of two or more checkpoints of one network into one checkpoint (a "model soup").
+"""Average the policy weights of two or more checkpoints of one network into one checkpoint (a "model soup"), or
+copy one checkpoint's weights without its resume state (a file to ship).
 
 Usage::
 
@@ -37,7 +38,7 @@ from findview_baselines.rl.checkpoint import (  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     """Parse the command line, average, write; returns the exit status (0, or 2 for bad input)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("inputs", nargs="+", help="checkpoint files (.pth written by tools/train.py), two or more")
+    p.add_argument("inputs", nargs="+", help="checkpoint files (.pth written by tools/train.py); one: a copy without the resume state")
     p.add_argument("--out", required=True, help="the averaged checkpoint to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     args = p.parse_args(argv)
@@ -50,11 +51,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         state = average_checkpoints(args.inputs)
-    except (CheckpointError, CheckpointNotFound, ValueError) as err:  # ValueError: fewer than two inputs
+    except (CheckpointError, CheckpointNotFound, ValueError) as err:
         print(f"average_checkpoints: {err}", file=sys.stderr)
         return 2
     save_checkpoint(out, state)  # atomic; makes the folder
-    print(f"averaged {len(args.inputs)} checkpoints -> {out}")
+    print(f"averaged {len(args.inputs)} checkpoints -> {out}" if len(args.inputs) > 1 else f"copied the weights -> {out}")
     return 0
 
 

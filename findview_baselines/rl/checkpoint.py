@@ -174,7 +174,8 @@ def checkpoint_payload(
 
 
 def average_checkpoints(paths: Sequence[str | os.PathLike]) -> dict[str, Any]:
-    """The uniform average of the policy weights of two or more checkpoints of one model (a "model soup").
+    """The uniform average of the policy weights of one or more checkpoints of one model (a "model soup"; one
+    checkpoint: its weights as they are, without its resume state, a file to ship).
 
     Meant for runs fine-tuned from one common checkpoint (the same network and the same starting weights), whose
     weights stay close enough for their mean to be a network of its own. Every floating-point tensor of
@@ -185,13 +186,13 @@ def average_checkpoints(paths: Sequence[str | os.PathLike]) -> dict[str, Any]:
     ``averaged_from`` lists the inputs as given (strings), with their updates.
 
     Raises:
-        ValueError: fewer than two paths.
+        ValueError: no path.
         CheckpointNotFound, CheckpointError: an input is missing or not a findview checkpoint, or the inputs
             differ in signature, in their policy's tensor names, shapes or dtypes, or in a non-float tensor
             (the message names both files and the first difference).
     """
-    if len(paths) < 2:
-        raise ValueError(f"averaging needs at least two checkpoints, got {len(paths)}")
+    if not paths:
+        raise ValueError("averaging needs at least one checkpoint, got none")
     states = [load_checkpoint(p) for p in paths]
     first, name0 = states[0], str(paths[0])
     for path, state in zip(paths[1:], states[1:]):
