@@ -185,6 +185,13 @@ def test_wide_on_rows_add_the_wide_match_and_the_others_nothing() -> None:
     assert not torch.allclose(on, without, atol=1e-3)
     torch.testing.assert_close(gated[[0, 2]], on[[0, 2]])
     torch.testing.assert_close(gated[1], without[1])
+    # every row off: the wide match is not computed at all, and the features are the network's without the layer
+    calls = []
+    policy.wide.register_forward_hook(lambda *args: calls.append(1))
+    with torch.no_grad():
+        off = policy.encode({**obs, WIDE_ON: torch.zeros(3, dtype=torch.bool)})
+    assert not calls
+    torch.testing.assert_close(off, without)
 
 
 class GateSpy(torch.nn.Module):

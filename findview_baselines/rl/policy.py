@@ -341,16 +341,16 @@ class Policy(nn.Module):
         with torch.no_grad():
             return self._direct_fixed(self._prepare(obs["view"]), self._prepare(obs["target"])).float()
 
-    def _direct_fixed(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def _direct_fixed(self, view: torch.Tensor, target: torch.Tensor, skip_wide: bool = False) -> torch.Tensor:
         """The ``direct`` family's parameter-free inputs: view, target (B, 3, H, W) float in [0, 1] -> (B,
         :attr:`fixed_feature_size`): :meth:`DirectEncoder.fixed_inputs`, then the pitch warps' scalars if on, then
-        the wide match's if on."""
+        the wide match's if on (zeros with ``skip_wide``: for rows whose wide match is gated off)."""
         fixed = self.encoder.fixed_inputs(view, target)
         parts = [fixed]
         if self.warp is not None:
             parts.append(self.warp(view, target).to(fixed.dtype))
         if self.wide is not None:
-            parts.append(self.wide(view, target).to(fixed.dtype))
+            parts.append(fixed.new_zeros(len(fixed), self.wide_match) if skip_wide else self.wide(view, target).to(fixed.dtype))
         return torch.cat(parts, dim=1) if len(parts) > 1 else fixed
 
     def _direct_head(self, fixed: torch.Tensor, wide_on: torch.Tensor | None = None) -> torch.Tensor:
@@ -430,7 +430,10 @@ class Policy(nn.Module):
         if self.variant not in CONV_VARIANTS:  # the FINE_VARIANTS take both images together
             target = self._prepare(obs["target"])
             if isinstance(self.encoder, DirectEncoder):
-                return self._direct_head(self._direct_fixed(view, target), obs.get(WIDE_ON))
+                wide_on = obs.get(WIDE_ON)
+                # no row's wide match speaks (wide_match_steps): its columns stay zero, not computed
+                skip_wide = wide_on is not None and self.wide is not None and not bool(wide_on.any())
+                return self._direct_head(self._direct_fixed(view, target, skip_wide), wide_on)
             return self.encoder(view, target)
         # the work that depends on the target alone runs once per distinct target (a rollout repeats each
         # episode's target on every step; see rl/distinct.py): the same features and gradients, less work
