@@ -285,8 +285,8 @@ class PPOAgentConfig:
     shift, without a window (findview_baselines/rl/wide_match.py): which way a target lies that only overlaps the
     edge of the view (45-70 degrees to the side at FoV 90), where the phase correlation's window hides it. Through a
     layer that starts at zero (``init_from`` an agent without it starts unchanged). direct / robust / phase variants
-    only. Part of the checkpoint signature. No shipped file uses it: fine-tunes of the FoV-90 robust file with it
-    did not change which way the network turns first (benchmarks/RESULTS.md, "Session 39")."""
+    only. Part of the checkpoint signature. The FoV-90 robust file reads it since session 40 (its stage 4,
+    configs/experiment/robust_wide.yaml), in each episode's first 10 steps (``wide_match_steps``)."""
     wide_match_steps: int = 0
     """At evaluation (as ``mirror_steps``), with a network that reads the wide match: it speaks only in the first this
     many policy steps of an episode, where it tells which way a target at the edge of the view lies; later steps add

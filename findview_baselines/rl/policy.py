@@ -46,7 +46,8 @@ the encoder's features; its scalars are part of :meth:`Policy.fixed_features`.
 
 Wide match (``wide_match``, the ``direct`` family only): the zero-normalised cross-correlation of view and target
 over their overlap at every shift, without a window (:class:`WideMatch`, ``rl/wide_match.py``), a direction cue for
-a target that only overlaps the view's edge, enters the same way through ``wide_proj``.
+a target that only overlaps the view's edge, enters the same way through ``wide_proj``. An observation may gate it
+per row (:data:`WIDE_ON`, ``agent.wide_match_steps``): rows marked off add nothing from it.
 
 Auxiliary rotation loss (any variant, training only): :class:`AuxHead` regresses ``(dpitch, dyaw) / fov``
 and classifies overlap from the features before the GRU (``Policy.forward_features``); see
