@@ -292,6 +292,11 @@ class PPOAgentConfig:
     many policy steps of an episode, where it tells which way a target at the edge of the view lies; later steps add
     nothing from it (for a network of which only the wide match's layer trained, ``train_only=[wide_proj]``: the
     network it started from, with the GRU state those first steps left). 0 = every step."""
+    wide_match_min_peak: float = 0.0
+    """At evaluation, with a network that reads the wide match: it speaks only for a view whose wide-match peak (the
+    best ZNCC of view and target over the shifts with enough overlap, in [-1, 1]) is at least this, i.e. when the
+    target overlaps the view with some confidence; for a target outside the view (a hard episode's start) the peak
+    is low and the network acts as the one it started from. Combines with ``wide_match_steps``. 0 = no threshold."""
     refine_stop: bool = False
     """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
     of the policy by phase correlation of view and target, and when the target is measured at least half a degree
@@ -393,6 +398,8 @@ class PPOAgentConfig:
         check(self.mirror_steps >= 0, "agent.mirror_steps", self.mirror_steps, "0 (off) or a number of policy steps")
         check(self.wide_match_steps >= 0, "agent.wide_match_steps", self.wide_match_steps,
               "0 (every step) or a number of policy steps")
+        check(0.0 <= self.wide_match_min_peak < 1.0, "agent.wide_match_min_peak", self.wide_match_min_peak,
+              "a ZNCC in [0, 1) (0 = no threshold)")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
         check(not self.memory_inputs or self.revisit_penalty > 0, "agent.revisit_penalty", self.revisit_penalty,

@@ -12,7 +12,9 @@ from findview.sim.equi2pers import equi2pers
 from findview_baselines.agents.ppo_agent import PPOAgent
 from findview_baselines.rl.checkpoint import checkpoint_payload, save_checkpoint
 from findview_baselines.rl.policy import WIDE_ON, Policy
-from findview_baselines.rl.wide_match import LOW, MIN_OVERLAP, WIDE_BINS, WIDE_FEATURES, WideMatch, overlap_zncc
+from findview_baselines.rl.wide_match import (
+    LOW, MIN_OVERLAP, WIDE_BINS, WIDE_FEATURES, WIDE_PEAK, WideMatch, overlap_zncc,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -192,6 +194,47 @@ def test_wide_on_rows_add_the_wide_match_and_the_others_nothing() -> None:
         off = policy.encode({**obs, WIDE_ON: torch.zeros(3, dtype=torch.bool)})
     assert not calls
     torch.testing.assert_close(off, without)
+
+
+def test_rows_below_the_min_peak_add_nothing_from_the_wide_match() -> None:
+    """``wide_min_peak`` (agent.wide_match_min_peak): a pair whose target is the view itself peaks at 1 and keeps
+    the wide match; a pair of unrelated noise images peaks lower and gets the network without the layer; the
+    threshold combines with ``WIDE_ON``."""
+    policy = small_policy()
+    with torch.no_grad():
+        policy.wide_proj[-1].weight.normal_(0, 0.5)
+        policy.wide_proj[-1].bias.fill_(0.2)
+    gen = torch.Generator().manual_seed(4)
+    images = torch.randint(0, 256, (3, 3, 64, 64), dtype=torch.uint8, generator=gen)
+    # rows: identical pair, unrelated pair, identical pair
+    obs = {"view": images, "target": torch.stack([images[0], images[0].flip(-1).roll(17, -2), images[2]])}
+    with torch.no_grad():
+        fixed = policy.fixed_features(obs)
+        peak = fixed[:, policy.encoder.fixed_size + WIDE_PEAK]
+        assert peak[0].item() == pytest.approx(1.0, abs=1e-4) and peak[2].item() == pytest.approx(1.0, abs=1e-4)
+        assert peak[1].item() < 0.5  # noise against unrelated noise: a weak best shift
+        on = policy.encode(obs)
+        without = policy.encoder.head_forward(fixed[:, :policy.encoder.fixed_size])
+        policy.wide_min_peak = 0.9
+        gated = policy.encode(obs)
+        torch.testing.assert_close(gated[[0, 2]], on[[0, 2]])
+        torch.testing.assert_close(gated[1], without[1])
+        both = policy.encode({**obs, WIDE_ON: torch.tensor([False, True, True])})  # and WIDE_ON: only row 2 speaks
+        torch.testing.assert_close(both[2], on[2])
+        torch.testing.assert_close(both[:2], without[:2])
+
+
+def test_the_agent_sets_the_min_peak_and_checks_it() -> None:
+    from findview_baselines.config import PPOAgentConfig
+
+    assert PPOAgent(small_policy(), 1, wide_match_min_peak=0.75).policy.wide_min_peak == 0.75
+    assert PPOAgent(small_policy(), 1).policy.wide_min_peak == 0.0
+    with pytest.raises(ValueError, match="wide_match_min_peak=0.5 needs a network that reads the wide match"):
+        PPOAgent(small_policy(0), 1, wide_match_min_peak=0.5)
+    with pytest.raises(ValueError, match=r"wide_match_min_peak must be a ZNCC in \[0, 1\)"):
+        PPOAgent(small_policy(), 1, wide_match_min_peak=1.0)
+    with pytest.raises(ValueError, match="agent.wide_match_min_peak"):
+        PPOAgentConfig(wide_match_min_peak=-0.1)
 
 
 class GateSpy(torch.nn.Module):

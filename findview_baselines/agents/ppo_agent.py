@@ -173,6 +173,7 @@ class PPOAgent(Agent):
         revisit_near: NearVisits = NearVisits(),
         mirror_steps: int = 0,
         wide_match_steps: int = 0,
+        wide_match_min_peak: float = 0.0,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -196,6 +197,13 @@ class PPOAgent(Agent):
             raise ValueError(f"wide_match_steps={wide_match_steps} needs a network that reads the wide match "
                              f"(agent.wide_match, wide_match in its checkpoint signature); this one does not")
         self.wide_match_steps = int(wide_match_steps)
+        if not 0.0 <= float(wide_match_min_peak) < 1.0:
+            raise ValueError(f"wide_match_min_peak must be a ZNCC in [0, 1) (0 = no threshold), got {wide_match_min_peak}")
+        if float(wide_match_min_peak) and not getattr(policy, "wide_match", 0):
+            raise ValueError(f"wide_match_min_peak={wide_match_min_peak} needs a network that reads the wide match "
+                             f"(agent.wide_match, wide_match in its checkpoint signature); this one does not")
+        if getattr(policy, "wide_match", 0):
+            self.policy.wide_min_peak = float(wide_match_min_peak)
         # the mirrored episodes' GRU states (mirror_steps), None without them
         self.hidden_mirror = policy.initial_hidden(self.num_envs, self.device) if self.mirror_steps else None
         # each slot's policy steps so far in its episode, and its last yaw move (Action.LEFT / RIGHT; -1: none
@@ -255,6 +263,7 @@ class PPOAgent(Agent):
         revisit_near: NearVisits = NearVisits(),
         mirror_steps: int = 0,
         wide_match_steps: int = 0,
+        wide_match_min_peak: float = 0.0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -302,7 +311,7 @@ class PPOAgent(Agent):
             raise ValueError(f"{path}: weights do not fit the model of its signature {sig}: {err}") from err
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_rows, refiner, stop_prob, fov,
-            stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps, wide_match_steps,
+            stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps, wide_match_steps, wide_match_min_peak,
         )
 
     @classmethod
@@ -329,7 +338,7 @@ class PPOAgent(Agent):
             refiner=_refiner(cfg, num_envs, width) if cfg.refine_stop else None,
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
             stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), mirror_steps=cfg.mirror_steps,
-            wide_match_steps=cfg.wide_match_steps,
+            wide_match_steps=cfg.wide_match_steps, wide_match_min_peak=cfg.wide_match_min_peak,
         )
 
     # acting --------------------------------------------------------------------------------------

@@ -98,7 +98,7 @@ from findview_baselines.rl.encoders import (
 )
 from findview_baselines.rl.pitch_warps import WARP_FEATURES, PitchWarpedPhase
 from findview_baselines.rl.search_memory import MEMORY_FEATURES
-from findview_baselines.rl.wide_match import WIDE_FEATURES, WideMatch
+from findview_baselines.rl.wide_match import WIDE_FEATURES, WIDE_PEAK, WideMatch
 from findview_baselines.rl.signature import OPTIONAL_SIGNATURE_FIELDS, SIGNATURE_FIELDS, check_signature
 
 # width of the hidden layer that reads the pitch warps' scalars
@@ -270,6 +270,9 @@ class Policy(nn.Module):
         self.wide_proj = nn.Sequential(
             nn.Linear(self.wide_match, WARP_HIDDEN), nn.ReLU(), nn.Linear(WARP_HIDDEN, feature_size),
         ) if self.wide_match else None
+        # an evaluation setting, not a weight (agent.wide_match_min_peak): rows whose wide-match peak is below it
+        # add nothing from the wide match (0: every row adds it)
+        self.wide_min_peak = 0.0
         self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
         self.critic = nn.Linear(hidden_size, 1)
@@ -357,13 +360,18 @@ class Policy(nn.Module):
     def _direct_head(self, fixed: torch.Tensor, wide_on: torch.Tensor | None = None) -> torch.Tensor:
         """The ``direct`` family's learned part: :meth:`_direct_fixed`'s (B, :attr:`fixed_feature_size`) -> (B, F):
         the encoder's head, plus the pitch warps through ``warp_proj`` and the wide match through ``wide_proj`` if on.
-        ``wide_on``: (B,) bool, the rows that add the wide match (``None``: all of them; :data:`WIDE_ON`)."""
+        ``wide_on``: (B,) bool, the rows that add the wide match (``None``: all of them; :data:`WIDE_ON`); with
+        :attr:`wide_min_peak` > 0 only those of them whose ZNCC peak reaches it (a confident match)."""
         split = self.encoder.fixed_size
         out = self.encoder.head_forward(fixed[:, :split])
         if self.warp_proj is not None:
             out = out + self.warp_proj(fixed[:, split:split + self.pitch_warps])
         if self.wide_proj is not None:
-            wide = self.wide_proj(fixed[:, split + self.pitch_warps:])
+            wide_in = fixed[:, split + self.pitch_warps:]
+            wide = self.wide_proj(wide_in)
+            if self.wide_min_peak > 0:  # a row gated off (zero columns) has peak 0 and stays off
+                sure = wide_in[:, WIDE_PEAK] >= self.wide_min_peak
+                wide_on = sure if wide_on is None else wide_on & sure
             out = out + (wide if wide_on is None else wide * wide_on[:, None].to(wide.dtype))
         return out
 

@@ -34,7 +34,7 @@ from torch import nn
 
 from findview_baselines.rl.encoders import PHASE_SIDE, standardize
 
-__all__ = ["MIN_OVERLAP", "WIDE_BINS", "WIDE_FEATURES", "WideMatch", "overlap_zncc"]
+__all__ = ["MIN_OVERLAP", "WIDE_BINS", "WIDE_FEATURES", "WIDE_PEAK", "WideMatch", "overlap_zncc"]
 
 #: the smallest overlap, as a fraction of the image's pixels, of a shift whose ZNCC counts (at FoV 90 a yaw
 #: shift of up to 72 degrees; 0.3 was as good up to 65 degrees and worse beyond)
@@ -44,6 +44,8 @@ WIDE_BINS = 9
 #: features per pair: the coarse surface (``WIDE_BINS`` squared, dy-major), then the peak's height and its
 #: (dy, dx) as fractions of the image
 WIDE_FEATURES = WIDE_BINS * WIDE_BINS + 3
+#: the column of the peak's height (the best ZNCC over the shifts with enough overlap) among the features
+WIDE_PEAK = WIDE_BINS * WIDE_BINS
 # the score of a shift with too little overlap (below any ZNCC)
 LOW = -1.0
 
