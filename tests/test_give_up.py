@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from _stand_in import StandInPolicy
 from findview.episode import Episode
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
 from findview_baselines.agents.give_up import GiveUp
@@ -57,21 +58,14 @@ def test_a_stop_head_never_sure_enough_does_not_walk_back():
         GiveUp(1, stop_by=0, yaw_cells=360)
 
 
-class RingPolicy(torch.nn.Module):
+class RingPolicy(StandInPolicy):
     """A stand-in network for the learned agent: it always prefers RIGHT (with the search memory it circles its row,
     then moves on) and never stops by itself; where the view's pixels encode pitch 0 and yaw ``sure_yaw`` its STOP
     probability is ``sure`` (0.001 elsewhere)."""
 
-    height = width = 8
-    memory_inputs = 0
-    heavy = False
-
     def __init__(self, sure_yaw: int, sure: float) -> None:
         super().__init__()
         self.sure_yaw, self.sure = sure_yaw, sure
-
-    def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
-        return torch.zeros(num_envs, 1, device=device)
 
     def forward(self, obs, hidden, masks, memory=None):  # noqa: ANN001, ANN201
         yaw = obs["view"][:, 0, 0, 0].long() + 256 * obs["view"][:, 1, 0, 0].long()
@@ -193,16 +187,11 @@ def test_each_episode_measures_against_its_own_target():
         assert torch.equal(agent.give_up.target_spectra[0], phase_spectrum(target, 1)[0])
 
 
-class BlindPolicy(torch.nn.Module):
+class BlindPolicy(StandInPolicy):
     """A stop head that never recognises the target (STOP probability 0.001 everywhere) and a preference for RIGHT:
     with the search memory the agent circles its row."""
 
     height = width = 64
-    memory_inputs = 0
-    heavy = False
-
-    def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
-        return torch.zeros(num_envs, 1, device=device)
 
     def forward(self, obs, hidden, masks, memory=None):  # noqa: ANN001, ANN201
         n = obs["view"].shape[0]

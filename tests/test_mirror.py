@@ -9,6 +9,7 @@ import math
 import pytest
 import torch
 
+from _stand_in import StandInPolicy
 from findview_baselines.agents.base import LEFT, RIGHT, STOP, UP
 from findview_baselines.agents.ppo_agent import PPOAgent, mirror_mean
 
@@ -73,23 +74,16 @@ def test_when_the_plays_disagree_about_turning_back_the_one_going_on_leads():
     assert rows[0].tolist() == pytest.approx(own) and rows[1].tolist() == pytest.approx(mirrored_here)
 
 
-class HalvesPolicy(torch.nn.Module):
+class HalvesPolicy(StandInPolicy):
     """A stand-in network that reads the two halves of its view (8x8 pixels; ``s``, ``r``: the means of the left and
     right halves, 0..1). ``detector``: RIGHT 0.97 where the right half is the brighter (a target it sees on its
     right), else RIGHT 0.6 and LEFT 0.3 (it misses a target on its left); otherwise RIGHT 0.45 + 0.4 ``s`` and LEFT
     0.45 - 0.4 ``s`` (a search that turns right). Its GRU state adds ``s`` every step, so each play's state says
     which pictures it saw."""
 
-    height = width = 8
-    memory_inputs = 0
-    heavy = False
-
     def __init__(self, detector: bool) -> None:
         super().__init__()
         self.detector = detector
-
-    def initial_hidden(self, num_envs: int, device: torch.device | str | None = None) -> torch.Tensor:
-        return torch.zeros(num_envs, 1, device=device)
 
     def forward(self, obs, hidden, masks, memory=None):  # noqa: ANN001, ANN201
         view = obs["view"].double() / 255.0

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from _growable import check_grows_from_a_checkpoint_without_it
+from _stand_in import StandInPolicy
 from findview.sim.equi2pers import equi2pers
 from findview_baselines.agents.ppo_agent import PPOAgent
 from findview_baselines.rl.checkpoint import checkpoint_payload, save_checkpoint
@@ -237,20 +238,14 @@ def test_the_agent_sets_the_min_peak_and_checks_it() -> None:
         PPOAgentConfig(wide_match_min_peak=-0.1)
 
 
-class GateSpy(torch.nn.Module):
+class GateSpy(StandInPolicy):
     """A stand-in network that records the ``WIDE_ON`` rows it is given and always turns right."""
 
     wide_match = WIDE_FEATURES
-    height = width = 8
-    memory_inputs = 0
-    heavy = False
 
     def __init__(self) -> None:
         super().__init__()
         self.seen: list[list[bool]] = []
-
-    def initial_hidden(self, n: int, device=None) -> torch.Tensor:
-        return torch.zeros(n, 2, device=device)
 
     def forward(self, obs, hidden, masks, memory=None):
         from torch.distributions import Categorical
