@@ -293,10 +293,11 @@ class PPOAgentConfig:
     nothing from it (for a network of which only the wide match's layer trained, ``train_only=[wide_proj]``: the
     network it started from, with the GRU state those first steps left). 0 = every step."""
     wide_match_min_peak: float = 0.0
-    """At evaluation, with a network that reads the wide match: it speaks only for a view whose wide-match peak (the
-    best ZNCC of view and target over the shifts with enough overlap, in [-1, 1]) is at least this, i.e. when the
-    target overlaps the view with some confidence; for a target outside the view (a hard episode's start) the peak
-    is low and the network acts as the one it started from. Combines with ``wide_match_steps``. 0 = no threshold."""
+    """With a network that reads the wide match, in evaluation and in training (the trainer's network gets it too):
+    the wide match speaks only for a view whose wide-match peak (the best ZNCC of view and target over the shifts
+    with enough overlap, in [-1, 1]) is at least this, i.e. when the target overlaps the view with some confidence;
+    for a target outside the view (a hard episode's start) the peak is low and the network acts as the one it
+    started from. Combines with ``wide_match_steps``. 0 = no threshold."""
     refine_stop: bool = False
     """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
     of the policy by phase correlation of view and target, and when the target is measured at least half a degree

@@ -169,6 +169,12 @@ def test_the_config_switch_builds_the_wide_match() -> None:
     off = build_policy(PPOAgentConfig(variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2), 64, 64)
     assert on.wide_match == WIDE_FEATURES and isinstance(on.wide, WideMatch)
     assert off.wide_match == 0 and off.wide is None and "wide_match" not in off.model_signature()
+    # the peak gate holds in training too: the trainer's network (build_policy) gets it from the config
+    gated = build_policy(PPOAgentConfig(variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2, wide_match=True,
+                                        wide_match_min_peak=0.75), 64, 64)
+    assert gated.wide_min_peak == 0.75 and on.wide_min_peak == 0.0
+    with pytest.raises(ValueError, match="agent.wide_match_min_peak=0.5 gates the wide match: it needs agent.wide_match=true"):
+        build_policy(PPOAgentConfig(variant="phase", hidden_size=16, wide_match_min_peak=0.5), 64, 64)
 
 
 def test_wide_on_rows_add_the_wide_match_and_the_others_nothing() -> None:
@@ -220,6 +226,7 @@ def test_rows_below_the_min_peak_add_nothing_from_the_wide_match() -> None:
         gated = policy.encode(obs)
         torch.testing.assert_close(gated[[0, 2]], on[[0, 2]])
         torch.testing.assert_close(gated[1], without[1])
+        torch.testing.assert_close(policy.features(None, fixed=fixed), gated)  # the trainer's cached-input path too
         both = policy.encode({**obs, WIDE_ON: torch.tensor([False, True, True])})  # and WIDE_ON: only row 2 speaks
         torch.testing.assert_close(both[2], on[2])
         torch.testing.assert_close(both[:2], without[:2])

@@ -599,11 +599,16 @@ class Policy(nn.Module):
 def build_policy(agent: "PPOAgentConfig", height: int, width: int) -> Policy:
     """Policy from the ``agent`` section (:class:`findview_baselines.config.PPOAgentConfig`: ``variant``,
     ``hidden_size``, ``fine_shifts``, ``fine_scales``, ``memory_inputs``, ``pitch_warps`` (for views of ``fov``
-    degrees), ``wide_match``; speed options ``precision``, ``channels_last``,
+    degrees), ``wide_match`` (gated by ``wide_match_min_peak``); speed options ``precision``, ``channels_last``,
     ``compile``, see :meth:`Policy.configure_speed`) and the view size of ``sim`` (pixels)."""
     policy = Policy(height=int(height), width=int(width), variant=agent.variant, hidden_size=agent.hidden_size,
                     fine_shifts=agent.fine_shifts, fine_scales=agent.fine_scales,
                     memory_inputs=MEMORY_FEATURES if agent.memory_inputs else 0,
                     pitch_warps=WARP_FEATURES if agent.pitch_warps else 0, warp_fov=agent.fov,
                     wide_match=WIDE_FEATURES if agent.wide_match else 0)
+    if agent.wide_match_min_peak:  # the wide match's peak gate holds in training as in evaluation
+        if not agent.wide_match:
+            raise ValueError(f"agent.wide_match_min_peak={agent.wide_match_min_peak} gates the wide match: it needs "
+                             f"agent.wide_match=true")
+        policy.wide_min_peak = float(agent.wide_match_min_peak)
     return policy.configure_speed(precision=agent.precision, channels_last=agent.channels_last, compile=agent.compile)
