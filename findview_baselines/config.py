@@ -297,7 +297,8 @@ class PPOAgentConfig:
     the wide match speaks only for a view whose wide-match peak (the best ZNCC of view and target over the shifts
     with enough overlap, in [-1, 1]) is at least this, i.e. when the target overlaps the view with some confidence;
     for a target outside the view (a hard episode's start) the peak is low and the network acts as the one it
-    started from. Combines with ``wide_match_steps``. 0 = no threshold."""
+    started from. Combines with ``wide_match_steps``. 0 = no threshold. tools/eval.py takes the checkpoint's
+    training value unless the command line sets it."""
     refine_stop: bool = False
     """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
     of the policy by phase correlation of view and target, and when the target is measured at least half a degree

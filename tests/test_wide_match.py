@@ -245,6 +245,26 @@ def test_the_agent_sets_the_min_peak_and_checks_it() -> None:
         PPOAgentConfig(wide_match_min_peak=-0.1)
 
 
+def test_eval_takes_the_min_peak_the_checkpoint_trained_with(tmp_path) -> None:
+    """tools/eval.py's config: a checkpoint whose run trained with ``agent.wide_match_min_peak`` is evaluated with
+    it unless the command line says otherwise; a checkpoint without the key keeps the schema's 0."""
+    from findview_baselines.cli import compose_config, validate_config
+    from findview_baselines.evaluation.evaluate import apply_checkpoint_config, build_agent
+
+    def min_peak(path, *given: str) -> float:
+        composed = validate_config(compose_config("eval", ["agent=ppo", f"checkpoint={path}", *given]))
+        cfg = apply_checkpoint_config(composed, list(given))
+        return build_agent(cfg, 1, torch.device("cpu"))[0].policy.wide_min_peak
+
+    config = {"agent": {"wide_match": True, "wide_match_min_peak": 0.75}, "sim": {"fov": 90.0, "height": 64, "width": 64}}
+    gated = save_checkpoint(tmp_path / "gated.pth", checkpoint_payload(small_policy(), 0, 0, config, None, None, None))
+    plain = save_checkpoint(tmp_path / "plain.pth", checkpoint_payload(small_policy(), 0, 0, {}, None, None, None))
+    assert min_peak(gated) == 0.75
+    assert min_peak(gated, "agent.wide_match_min_peak=0.6") == 0.6
+    assert min_peak(gated, "agent.wide_match_min_peak=0") == 0.0
+    assert min_peak(plain) == 0.0
+
+
 class GateSpy(StandInPolicy):
     """A stand-in network that records the ``WIDE_ON`` rows it is given and always turns right."""
 

@@ -56,6 +56,8 @@ _MODEL_KEYS = ("variant", "hidden_size", "fine_shifts", "fine_scales")
 #: the learned agent's search-memory settings (a training run records the ones it validated with)
 _SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride", "revisit_row_after", "revisit_row_budget", "revisit_near_rows",
                 "revisit_near_penalty", "revisit_near_age")
+#: the learned agent's settings that change what its network reads, which a training run trains with
+_TRAINED_KEYS = ("wide_match_min_peak",)
 
 
 class EvalError(UserError):
@@ -217,8 +219,8 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     an integer multiple of its network's with ``agent.downsample``) unless given on the command line
     (or a ``sim=`` preset was chosen), and ``agent.fov`` follows ``sim.fov`` unless given; ``agent`` becomes a learned-agent config with the checkpoint's model
     (keeping ``agent.sample`` when the learned agent was chosen); the search memory (``agent.revisit_penalty``,
-    ``agent.revisit_row_*``, ``agent.revisit_near_*``) is the command line's, else the training run's, else the
-    schema's. ``cfg`` itself is not changed.
+    ``agent.revisit_row_*``, ``agent.revisit_near_*``) and the wide match's peak gate (``agent.wide_match_min_peak``)
+    are the command line's, else the training run's, else the schema's. ``cfg`` itself is not changed.
 
     Raises:
         EvalError: ``agent=<a rule-based agent>`` was given with the checkpoint (the one place this is checked).
@@ -245,7 +247,8 @@ def apply_checkpoint_config(cfg: EvalConfig, overrides: Sequence[str] = ()) -> E
     model["memory_inputs"] = bool(sig.get("memory_inputs", 0))  # a width in the signature, a switch in the config
     model["pitch_warps"] = bool(sig.get("pitch_warps", 0))
     model["wide_match"] = bool(sig.get("wide_match", 0))
-    search = {k: trained_agent[k] for k in _SEARCH_KEYS if k in trained_agent and f"agent.{k}" not in given}
+    search = {k: trained_agent[k] for k in (*_SEARCH_KEYS, *_TRAINED_KEYS)
+              if k in trained_agent and f"agent.{k}" not in given}
     # agent.fov (the refinement's degrees per pixel, the search memory's band) follows the FoV the views will have
     fov = {} if "agent.fov" in given else {"fov": float(view.get("fov", cfg.sim.fov))}
     agent = replace(cfg.agent if learned else PPOAgentConfig(), **model, **search, **fov)
