@@ -13,8 +13,9 @@ turn.
 How it runs them:
 
 - in one temporary working folder per run, doc by doc and in the order written, so a later command sees
-  what an earlier one made (``data/``, ``outputs/``); the folder holds a link to the repository's
-  ``pretrained/``; the scripts are called by absolute path; each command has a timeout;
+  what an earlier one made (``data/``, ``outputs/``); the folder holds a copy of the repository's
+  ``pretrained/`` (a card's "make it" commands end by writing the shipped file: they write the copy, never the
+  repository's); the scripts are called by absolute path; each command has a timeout;
 - placeholders are filled in from ``PLACEHOLDERS`` (``<name>`` -> synthetic, ``<sun360_mini>`` -> the
   folder in ``$FINDVIEW_SUN360_MINI``, ``<a|b|c>`` -> a, ...); an optional part ``[key=...]`` is left out;
 - long commands get small overrides appended (``OVERRIDES``: later arguments win in Hydra and argparse);
@@ -518,8 +519,8 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="findview_check_docs_"))
     work.mkdir(parents=True, exist_ok=True)
-    if not (work / "pretrained").exists():
-        (work / "pretrained").symlink_to(REPO / "pretrained", target_is_directory=True)
+    if not (work / "pretrained").exists():  # a copy: a documented command may write a file there (a card's last step)
+        shutil.copytree(REPO / "pretrained", work / "pretrained")
     try:
         results = run_all(commands, work, ci, args.timeout, args.verbose)
     finally:
