@@ -47,7 +47,8 @@ the encoder's features; its scalars are part of :meth:`Policy.fixed_features`.
 Wide match (``wide_match``, the ``direct`` family only): the zero-normalised cross-correlation of view and target
 over their overlap at every shift, without a window (:class:`WideMatch`, ``rl/wide_match.py``), a direction cue for
 a target that only overlaps the view's edge, enters the same way through ``wide_proj``. An observation may gate it
-per row (:data:`WIDE_ON`, ``agent.wide_match_steps``): rows marked off add nothing from it.
+per row (:data:`WIDE_ON`, ``agent.wide_match_steps``): rows marked off add nothing from it; so do rows whose
+wide-match peak is below :attr:`Policy.wide_min_peak` (``agent.wide_match_min_peak``).
 
 Auxiliary rotation loss (any variant, training only): :class:`AuxHead` regresses ``(dpitch, dyaw) / fov``
 and classifies overlap from the features before the GRU (``Policy.forward_features``); see
@@ -270,8 +271,8 @@ class Policy(nn.Module):
         self.wide_proj = nn.Sequential(
             nn.Linear(self.wide_match, WARP_HIDDEN), nn.ReLU(), nn.Linear(WARP_HIDDEN, feature_size),
         ) if self.wide_match else None
-        # an evaluation setting, not a weight (agent.wide_match_min_peak): rows whose wide-match peak is below it
-        # add nothing from the wide match (0: every row adds it)
+        # a setting, not a weight (agent.wide_match_min_peak; build_policy sets it for training, the agent for
+        # evaluation): rows whose wide-match peak is below it add nothing from the wide match (0: every row adds it)
         self.wide_min_peak = 0.0
         self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
