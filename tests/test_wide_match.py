@@ -237,6 +237,17 @@ def test_the_agent_sets_the_min_peak_and_checks_it() -> None:
 
     assert PPOAgent(small_policy(), 1, wide_match_min_peak=0.75).policy.wide_min_peak == 0.75
     assert PPOAgent(small_policy(), 1).policy.wide_min_peak == 0.0
+    # no value keeps the network's own gate: the trainer's validation plays the network it trains (build_policy's gate)
+    from findview_baselines.config import PPOAgentConfig as Config
+    from findview_baselines.rl.policy import build_policy
+    from findview_baselines.training.build import make_val_agent
+
+    agent_cfg = Config(variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2, wide_match=True,
+                       wide_match_min_peak=0.75)
+    trained = build_policy(agent_cfg, 64, 64)
+    make_val_agent(agent_cfg, trained, 1, 0)
+    assert trained.wide_min_peak == 0.75
+    assert PPOAgent(trained, 1, wide_match_min_peak=0.0).policy.wide_min_peak == 0.0  # a value sets it
     with pytest.raises(ValueError, match="wide_match_min_peak=0.5 needs a network that reads the wide match"):
         PPOAgent(small_policy(0), 1, wide_match_min_peak=0.5)
     with pytest.raises(ValueError, match=r"wide_match_min_peak must be a ZNCC in \[0, 1\)"):
