@@ -274,6 +274,10 @@ def test_eval_takes_the_min_peak_the_checkpoint_trained_with(tmp_path) -> None:
     assert min_peak(gated, "agent.wide_match_min_peak=0.6") == 0.6
     assert min_peak(gated, "agent.wide_match_min_peak=0") == 0.0
     assert min_peak(plain) == 0.0
+    # the agent loaded straight from the file (no tools/eval.py) keeps the gate its network trained with too
+    assert PPOAgent.from_checkpoint(gated, 1).policy.wide_min_peak == 0.75
+    assert PPOAgent.from_checkpoint(gated, 1, wide_match_min_peak=0.5).policy.wide_min_peak == 0.5
+    assert PPOAgent.from_checkpoint(plain, 1).policy.wide_min_peak == 0.0
 
 
 class GateSpy(StandInPolicy):

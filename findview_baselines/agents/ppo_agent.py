@@ -273,8 +273,9 @@ class PPOAgent(Agent):
         Args:
             height, width: the simulator's view size: the checkpoint's, or the same integer multiple of its
                 height and width (:func:`downsample_factor`); another size raises ``ValueError`` saying which.
-            revisit_penalty, fov: ``None``: the values the checkpoint's run trained with (``agent.revisit_penalty``,
-                ``sim.fov`` of its stored config; 0 and none when it has none).
+            revisit_penalty, fov, wide_match_min_peak: ``None``: the values the checkpoint's run trained with
+                (``agent.revisit_penalty``, ``sim.fov``, ``agent.wide_match_min_peak`` of its stored config; 0, none
+                and 0 when it has none).
         """
         from findview_baselines.rl.policy import Policy
         from findview_baselines.rl.signature import check_signature
@@ -284,6 +285,8 @@ class PPOAgent(Agent):
         run_conf = dict(state.get("config") or {})
         if revisit_penalty is None:
             revisit_penalty = float(dict(run_conf.get("agent") or {}).get("revisit_penalty", 0.0))
+        if wide_match_min_peak is None:  # the gate the network trained with (0 when its run had none)
+            wide_match_min_peak = float(dict(run_conf.get("agent") or {}).get("wide_match_min_peak", 0.0))
         if fov is None and "fov" in dict(run_conf.get("sim") or {}):
             fov = float(run_conf["sim"]["fov"])
         missing = [k for k in ("variant", "hidden_size", "height", "width") if k not in sig]
