@@ -441,8 +441,10 @@ class Policy(nn.Module):
             target = self._prepare(obs["target"])
             if isinstance(self.encoder, DirectEncoder):
                 wide_on = obs.get(WIDE_ON)
-                # no row's wide match speaks (wide_match_steps): its columns stay zero, not computed
-                skip_wide = wide_on is not None and self.wide is not None and not bool(wide_on.any())
+                # no row's wide match speaks (wide_match_steps): on the CPU its columns stay zero, not computed;
+                # on an accelerator it is computed and masked, which is cheap there, as asking would cost a host read
+                skip_wide = (wide_on is not None and self.wide is not None and view.device.type == "cpu"
+                             and not bool(wide_on.any()))
                 return self._direct_head(self._direct_fixed(view, target, skip_wide), wide_on)
             return self.encoder(view, target)
         # the work that depends on the target alone runs once per distinct target (a rollout repeats each
