@@ -173,7 +173,7 @@ def test_the_config_switch_builds_the_wide_match() -> None:
     gated = build_policy(PPOAgentConfig(variant="phase", hidden_size=16, fine_shifts=1, fine_scales=2, wide_match=True,
                                         wide_match_min_peak=0.75), 64, 64)
     assert gated.wide_min_peak == 0.75 and on.wide_min_peak == 0.0
-    with pytest.raises(ValueError, match="agent.wide_match_min_peak=0.5 gates the wide match: it needs agent.wide_match=true"):
+    with pytest.raises(ValueError, match=r"agent.wide_match_min_peak=0.5 needs a network that reads the wide match \(agent.wide_match=true"):
         build_policy(PPOAgentConfig(variant="phase", hidden_size=16, wide_match_min_peak=0.5), 64, 64)
 
 
@@ -252,6 +252,9 @@ def test_the_agent_sets_the_min_peak_and_checks_it() -> None:
         PPOAgent(small_policy(0), 1, wide_match_min_peak=0.5)
     with pytest.raises(ValueError, match=r"wide_match_min_peak must be a ZNCC in \[0, 1\)"):
         PPOAgent(small_policy(), 1, wide_match_min_peak=1.0)
+    with pytest.raises(ValueError, match=r"wide_match_min_peak must be a ZNCC in \[0, 1\)"):  # checked first
+        PPOAgent(small_policy(0), 1, wide_match_min_peak=-0.1)
+    assert PPOAgent(small_policy(0), 1, wide_match_min_peak=0.0).policy.wide_min_peak == 0.0  # no gate: nothing to set
     with pytest.raises(ValueError, match="agent.wide_match_min_peak"):
         PPOAgentConfig(wide_match_min_peak=-0.1)
 

@@ -199,14 +199,9 @@ class PPOAgent(Agent):
         self.wide_match_steps = int(wide_match_steps)
         # the wide match's peak gate: None keeps the network's own (the trainer's validation plays the network it
         # trains, gate included, build_policy); a value sets it
-        if wide_match_min_peak is not None:
-            if not 0.0 <= float(wide_match_min_peak) < 1.0:
-                raise ValueError(f"wide_match_min_peak must be a ZNCC in [0, 1) (0 = no threshold), got {wide_match_min_peak}")
-            if float(wide_match_min_peak) and not getattr(policy, "wide_match", 0):
-                raise ValueError(f"wide_match_min_peak={wide_match_min_peak} needs a network that reads the wide match "
-                                 f"(agent.wide_match, wide_match in its checkpoint signature); this one does not")
-            if getattr(policy, "wide_match", 0):
-                self.policy.wide_min_peak = float(wide_match_min_peak)
+        # (0 on a network without the wide match is no gate, and nothing to set)
+        if wide_match_min_peak is not None and (float(wide_match_min_peak) or getattr(policy, "wide_match", 0)):
+            self.policy.set_wide_min_peak(wide_match_min_peak)
         # the mirrored episodes' GRU states (mirror_steps), None without them
         self.hidden_mirror = policy.initial_hidden(self.num_envs, self.device) if self.mirror_steps else None
         # each slot's policy steps so far in its episode, and its last yaw move (Action.LEFT / RIGHT; -1: none

@@ -271,8 +271,8 @@ class Policy(nn.Module):
         self.wide_proj = nn.Sequential(
             nn.Linear(self.wide_match, WARP_HIDDEN), nn.ReLU(), nn.Linear(WARP_HIDDEN, feature_size),
         ) if self.wide_match else None
-        # a setting, not a weight (agent.wide_match_min_peak; build_policy sets it for training, the agent for
-        # evaluation): rows whose wide-match peak is below it add nothing from the wide match (0: every row adds it)
+        # a setting, not a weight (agent.wide_match_min_peak, set_wide_min_peak; build_policy sets it for training,
+        # the agent for evaluation): rows whose wide-match peak is below it add nothing from the wide match (0: every row adds it)
         self.wide_min_peak = 0.0
         self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
@@ -375,6 +375,18 @@ class Policy(nn.Module):
                 wide_on = sure if wide_on is None else wide_on & sure
             out = out + (wide if wide_on is None else wide * wide_on[:, None].to(wide.dtype))
         return out
+
+    def set_wide_min_peak(self, peak: float, name: str = "wide_match_min_peak") -> None:
+        """Gate the wide match by its ZNCC peak (:attr:`wide_min_peak`; ``agent.wide_match_min_peak``): rows whose
+        peak is below ``peak`` add nothing from it. ``peak`` in [0, 1), 0 = no gate; a gate needs a network that
+        reads the wide match. ``name``: the setting named in the errors."""
+        peak = float(peak)
+        if not 0.0 <= peak < 1.0:
+            raise ValueError(f"{name} must be a ZNCC in [0, 1) (0 = no threshold), got {peak}")
+        if peak and not self.wide_match:
+            raise ValueError(f"{name}={peak} needs a network that reads the wide match (agent.wide_match=true, "
+                             f"wide_match in its checkpoint signature); this one does not")
+        self.wide_min_peak = peak
 
     def _init_weights(self) -> None:
         """Orthogonal init: gain sqrt(2) for convs / hidden FCs, 0.01 for the actor, 1 for the critic."""
@@ -610,8 +622,5 @@ def build_policy(agent: "PPOAgentConfig", height: int, width: int) -> Policy:
                     pitch_warps=WARP_FEATURES if agent.pitch_warps else 0, warp_fov=agent.fov,
                     wide_match=WIDE_FEATURES if agent.wide_match else 0)
     if agent.wide_match_min_peak:  # the wide match's peak gate holds in training as in evaluation
-        if not agent.wide_match:
-            raise ValueError(f"agent.wide_match_min_peak={agent.wide_match_min_peak} gates the wide match: it needs "
-                             f"agent.wide_match=true")
-        policy.wide_min_peak = float(agent.wide_match_min_peak)
+        policy.set_wide_min_peak(agent.wide_match_min_peak, name="agent.wide_match_min_peak")
     return policy.configure_speed(precision=agent.precision, channels_last=agent.channels_last, compile=agent.compile)
