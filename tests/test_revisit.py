@@ -138,10 +138,10 @@ def test_ppo_agent_refuses_a_negative_penalty():
         PPOAgent(Policy(64, 64, "early_fusion", hidden_size=8), 1, revisit_penalty=-1.0)
 
 
-def row_walk(steps: int, pitch_limit: int, row_after: int = 0) -> tuple[list[int], RevisitPenalty]:
+def row_walk(steps: int, pitch_limit: int, row_after: int = 0, stride: int = 5) -> tuple[list[int], RevisitPenalty]:
     """An agent that always prefers RIGHT, on a 30-degree grid (12 yaw cells), memory penalty 1, row search with
     stride 5 steps (rows +5, -5, then +10, beyond the 6-step pitch range: the search ends)."""
-    guard = RevisitPenalty(1, 1.0, step_deg=30, rows=RowSearch(stride=5, after=row_after))
+    guard = RevisitPenalty(1, 1.0, step_deg=30, rows=RowSearch(stride=stride, after=row_after))
     assert guard.yaw_cells == 12 and guard.cover_cells == 11 and guard.max_pitch == 6
     idx, pitch, yaw, actions = torch.tensor([0]), 0, 0, []
     for _ in range(steps):
@@ -161,20 +161,46 @@ def row_walk(steps: int, pitch_limit: int, row_after: int = 0) -> tuple[list[int
 def test_row_search_moves_to_the_next_rows_after_a_turn():
     # 11 of 12 yaw cells seen (the 11th arrival, step 10): 5 forced UPs to row +5; there the band of rows 3..7 holds
     # the transit column only, so 10 more RIGHTs fill it to 11 cells; then 10 DOWNs to row -5 and 10 RIGHTs again;
-    # the next row (+10) is out of range, so the search ends and the policy (with its memory) acts freely
+    # the next rows (+10, then -10) are out of range, both skipped at once, so the search ends and the policy (with
+    # its memory) acts freely
     actions, guard = row_walk(46, pitch_limit=90)
     assert actions[:45] == [RIGHT] * 10 + [UP] * 5 + [RIGHT] * 10 + [DOWN] * 10 + [RIGHT] * 10
-    assert int(guard.row_k[0]) == 3 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -5
+    assert int(guard.row_k[0]) == 4 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -5
 
 
 def test_row_search_skips_a_row_beyond_the_pitch_limit():
     # the simulator stops the pitch at +-3: the 4th forced UP leaves the view unchanged, so the agent turns to
-    # row -5; the 7th DOWN is blocked at -3 too, and the row after (+10) is out of range: the search ends
+    # row -5; the 7th DOWN is blocked at -3 too; the row after (+10) is beyond the limit met above (and out of
+    # range), skipped with the one after it (-10, beyond the limit met below): the search ends
     actions, guard = row_walk(30, pitch_limit=3)
     assert actions[:10] == [RIGHT] * 10
     assert actions[10:14] == [UP] * 4
-    assert actions[14:21] == [DOWN] * 7 and actions[21] == RIGHT
-    assert int(guard.row_k[0]) == 3 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -3
+    assert actions[14:21] == [DOWN] * 7 and actions[21:] == [RIGHT] * 9
+    assert int(guard.row_k[0]) == 4 and not bool(guard.row_seek[0]) and int(guard.pitch[0]) == -3
+    assert (int(guard.row_reach_hi[0]), int(guard.row_reach_lo[0])) == (3, -3)
+
+
+def test_row_search_does_not_walk_again_to_rows_beyond_a_limit_it_met():
+    # stride 2 on the 6-step grid, pitch limit 3: rows +2 and -2 lie in reach (each done on arrival, the band of
+    # +-2 rows holds the start row's turn); +4 is walked to and blocked at 3 (5 UPs and the blocked try), -4 at -3
+    # (6 DOWNs and the blocked try). Then +6 and -6 lie beyond both limits met: no move is forced for them (before,
+    # each was walked to across the whole range again, 7 UPs then 7 DOWNs) and the policy turns on
+    actions, guard = row_walk(60, pitch_limit=3, stride=2)
+    assert actions[:12] == [RIGHT] * 10 + [UP] * 2
+    assert actions[12:16] == [DOWN] * 4
+    assert actions[16:22] == [UP] * 6 and actions[22:29] == [DOWN] * 7
+    assert actions[29:] == [RIGHT] * 31
+    assert (int(guard.row_reach_hi[0]), int(guard.row_reach_lo[0])) == (3, -3) and not bool(guard.row_seek[0])
+    # the limits met are part of the resume state, and a new episode forgets them
+    resumed = RevisitPenalty(1, 1.0, step_deg=30, rows=RowSearch(stride=2))
+    resumed.load_state_dict(guard.state_dict())
+    assert (int(resumed.row_reach_hi[0]), int(resumed.row_reach_lo[0])) == (3, -3)
+    old = guard.state_dict()
+    old["row"] = old["row"][:5]  # a state saved before the limits were kept: none met
+    resumed.load_state_dict(old)
+    assert (int(resumed.row_reach_hi[0]), int(resumed.row_reach_lo[0])) == (6, -6)
+    guard.reset(torch.tensor([0]))
+    assert (int(guard.row_reach_hi[0]), int(guard.row_reach_lo[0])) == (6, -6)
 
 
 def test_row_search_after_a_step_leaves_the_policy_alone_until_then():

@@ -32,8 +32,10 @@ a wide margin (its last moves onto a target it sees) is still taken.
 above or below is found late or never. With a stride ``s`` (in steps; 45 = half of a 90-degree FoV), once the
 rows within 2 steps of the current one hold ``row_cover`` of a full turn of yaw cells, the agent's moves are
 replaced by pitch moves to the next search row, at offsets ``+s, -s, +2s, -2s, ...`` from its start row; there
-the policy acts again. A forced move that is blocked (the pitch limit) skips to the next row; rows beyond
-``max_pitch_steps`` end the search. ``STOP`` still wins wherever it is the policy's argmax.
+the policy acts again. A forced move that is blocked (the pitch limit) skips to the next row, and later rows
+beyond a limit the episode has met are skipped without a move (before, each was walked to across the whole pitch
+range and blocked again: 121 steps a row for a FoV-90 view); rows beyond ``max_pitch_steps``, or beyond the
+limits on both sides, end the search. ``STOP`` still wins wherever it is the policy's argmax.
 
 Two settings make the row search a **safety net** for a learned search. ``after = a`` (steps): the rows are
 forced only from the ``a``-th step of an episode on; before it the policy searches alone, so the episodes it
@@ -211,6 +213,10 @@ class RevisitPenalty:
         self.row_target = torch.zeros(n, dtype=torch.long, device=self.device)  # its pitch offset, steps
         self.row_seek = torch.zeros(n, dtype=torch.bool, device=self.device)  # on the way to it
         self.row_started = torch.zeros(n, dtype=torch.int32, device=self.device)  # clock when the row was chosen
+        # the pitch offsets (steps) where a forced move was blocked, above and below the start (the simulator's pitch
+        # limits, as far as this episode has met them): rows beyond them are skipped, not walked to again
+        self.row_reach_hi = torch.full((n,), self.max_pitch, dtype=torch.long, device=self.device)
+        self.row_reach_lo = torch.full((n,), -self.max_pitch, dtype=torch.long, device=self.device)
         self.last_blocked = torch.zeros(n, dtype=torch.bool, device=self.device)
 
     def reset(self, env_ids: torch.Tensor) -> None:
@@ -227,6 +233,8 @@ class RevisitPenalty:
         self.row_target[ids] = 0
         self.row_seek[ids] = False
         self.row_started[ids] = 0
+        self.row_reach_hi[ids] = self.max_pitch
+        self.row_reach_lo[ids] = -self.max_pitch
         self.last_blocked[ids] = False
 
     def mark_row_seen(self, env_ids: torch.Tensor) -> None:
@@ -357,14 +365,20 @@ class RevisitPenalty:
     def _row_search(self, idx: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
         """Row search: once the band of +-2 rows around the current one holds ``row_cover`` of a turn (or the row's
         ``rows.budget`` is spent), force pitch moves to the next search row (offsets ``+s, -s, +2s, -2s, ...`` from the
-        start, ``s = rows.stride``); a forced move that is blocked (the pitch limit) skips to the next row. Nothing
-        is forced before step ``rows.after``. Edits ``out`` (K, 5) in place."""
+        start, ``s = rows.stride``); a forced move that is blocked (the pitch limit) skips to the next row, and the
+        offset where it was blocked bounds the rows on its side for the rest of the episode: a row beyond a limit met
+        is skipped where it comes (the next, on the other side, is chosen at once), not walked to through every
+        row in between. Nothing is forced before step ``rows.after``. Edits ``out`` (K, 5) in place."""
         after, budget = self.rows.after, self.rows.budget
         band = (rows[:, None] + torch.arange(-2, 3, device=self.device)[None]).clamp(0, 2 * self.max_pitch)  # (K, 5)
         coverage = (self.visits[idx[:, None], band] > 0).any(dim=1).sum(dim=-1)  # (K,) yaw cells seen in the band
         seek = self.row_seek[idx]
         pitch = self.pitch[idx]
         blocked = seek & self.last_blocked[idx]
+        upward = self.row_target[idx] > pitch  # the way the blocked seek went
+        hi = torch.where(blocked & upward, pitch, self.row_reach_hi[idx])
+        lo = torch.where(blocked & ~upward, pitch, self.row_reach_lo[idx])
+        self.row_reach_hi[idx], self.row_reach_lo[idx] = hi, lo
         seek = seek & (pitch != self.row_target[idx])  # arrived
         clock = self.clock[idx]
         done = coverage >= self.cover_cells
@@ -373,10 +387,13 @@ class RevisitPenalty:
         live = clock > after
         advance = live & (blocked | (~seek & done))
         k = self.row_k[idx] + advance.long()
-        m = (k + 1) // 2
-        target = torch.where(k % 2 == 1, m, -m) * self.rows.stride
+        target = self._row_offset(k)
+        # a row beyond a limit met is skipped: the next row lies on the other side (+s, -s, +2s, -2s, ...)
+        skip = advance & ((target > hi) | (target < lo))
+        k = k + skip.long()
+        target = torch.where(skip, self._row_offset(k), target)
         target = torch.where(advance, target, self.row_target[idx])
-        seek = (seek | advance) & (target.abs() <= self.max_pitch)
+        seek = (seek | advance) & (target <= hi) & (target >= lo)  # none left on either side: the search ends
         self.row_k[idx] = k
         self.row_started[idx] = torch.where(advance, clock, self.row_started[idx])
         self.row_target[idx] = target
@@ -385,6 +402,11 @@ class RevisitPenalty:
         forced = torch.full_like(out[:, :4], float("-inf"))
         forced.scatter_(1, toward[:, None], 0.0)
         out[:, :4] = torch.where(seek[:, None], forced, out[:, :4])
+
+    def _row_offset(self, k: torch.Tensor) -> torch.Tensor:
+        """Pitch offset (steps from the start row) of search row ``k``: 0, +s, -s, +2s, -2s, ... (``s`` the stride)."""
+        m = (k + 1) // 2
+        return torch.where(k % 2 == 1, m, -m) * self.rows.stride
 
     def moved(self, idx: torch.Tensor, actions: torch.Tensor) -> None:
         """Slots ``idx`` take ``actions`` ``(K,)``; their poses move at the next :meth:`adjust`."""
@@ -421,7 +443,7 @@ class RevisitPenalty:
             "last_move": self.last_move.cpu().clone(),
             "last_view": None if self.last_view is None else self.last_view.cpu().clone(),
             "row": torch.stack([self.row_k, self.row_target, self.row_seek.long(), self.last_blocked.long(),
-                                self.row_started.long()]).cpu(),
+                                self.row_started.long(), self.row_reach_hi, self.row_reach_lo]).cpu(),
             "last_visit": self.last_visit.cpu().clone(),
             "clock": self.clock.cpu().clone(),
         }
@@ -445,6 +467,12 @@ class RevisitPenalty:
             self.row_seek.copy_(row[2].bool())
             self.last_blocked.copy_(row[3].bool())
             self.row_started.copy_(row[4] if row.shape[0] > 4 else torch.zeros_like(row[0]))  # saved before row budgets
+            if row.shape[0] > 6:  # saved before the limits were kept: none met
+                self.row_reach_hi.copy_(row[5])
+                self.row_reach_lo.copy_(row[6])
+            else:
+                self.row_reach_hi.fill_(self.max_pitch)
+                self.row_reach_lo.fill_(-self.max_pitch)
         last = state.get("last_view")
         self.last_view = None if last is None else last.to(self.device).clone()
         if state.get("clock") is not None:  # the steps since each reset (near-visit ages, the row search's start)
