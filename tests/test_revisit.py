@@ -140,7 +140,7 @@ def test_ppo_agent_refuses_a_negative_penalty():
 
 def row_walk(steps: int, pitch_limit: int, row_after: int = 0, stride: int = 5) -> tuple[list[int], RevisitPenalty]:
     """An agent that always prefers RIGHT, on a 30-degree grid (12 yaw cells), memory penalty 1, row search with
-    stride 5 steps (rows +5, -5, then +10, beyond the 6-step pitch range: the search ends)."""
+    stride ``stride`` steps (5: rows +5, -5, then +10, beyond the 6-step pitch range: the search ends)."""
     guard = RevisitPenalty(1, 1.0, step_deg=30, rows=RowSearch(stride=stride, after=row_after))
     assert guard.yaw_cells == 12 and guard.cover_cells == 11 and guard.max_pitch == 6
     idx, pitch, yaw, actions = torch.tensor([0]), 0, 0, []

@@ -199,8 +199,7 @@ class PPOAgent(Agent):
         self.wide_match_steps = int(wide_match_steps)
         # the wide match's peak gate: None keeps the network's own (the trainer's validation plays the network it
         # trains, gate included, build_policy); a value sets it
-        # (0 on a network without the wide match is no gate, and nothing to set)
-        if wide_match_min_peak is not None and (float(wide_match_min_peak) or getattr(policy, "wide_match", 0)):
+        if wide_match_min_peak is not None:
             self.policy.set_wide_min_peak(wide_match_min_peak)
         # the mirrored episodes' GRU states (mirror_steps), None without them
         self.hidden_mirror = policy.initial_hidden(self.num_envs, self.device) if self.mirror_steps else None

@@ -272,7 +272,8 @@ class Policy(nn.Module):
             nn.Linear(self.wide_match, WARP_HIDDEN), nn.ReLU(), nn.Linear(WARP_HIDDEN, feature_size),
         ) if self.wide_match else None
         # a setting, not a weight (agent.wide_match_min_peak, set_wide_min_peak; build_policy sets it for training,
-        # the agent for evaluation): rows whose wide-match peak is below it add nothing from the wide match (0: every row adds it)
+        # the agent for evaluation): rows whose wide-match peak is below it add nothing from the wide match (0: every
+        # row adds it)
         self.wide_min_peak = 0.0
         self.gru = nn.GRU(feature_size, hidden_size, num_layers=1)
         self.actor = nn.Linear(hidden_size, NUM_ACTIONS)
@@ -621,6 +622,6 @@ def build_policy(agent: "PPOAgentConfig", height: int, width: int) -> Policy:
                     memory_inputs=MEMORY_FEATURES if agent.memory_inputs else 0,
                     pitch_warps=WARP_FEATURES if agent.pitch_warps else 0, warp_fov=agent.fov,
                     wide_match=WIDE_FEATURES if agent.wide_match else 0)
-    if agent.wide_match_min_peak:  # the wide match's peak gate holds in training as in evaluation
-        policy.set_wide_min_peak(agent.wide_match_min_peak, name="agent.wide_match_min_peak")
+    # the wide match's peak gate holds in training as in evaluation
+    policy.set_wide_min_peak(agent.wide_match_min_peak, name="agent.wide_match_min_peak")
     return policy.configure_speed(precision=agent.precision, channels_last=agent.channels_last, compile=agent.compile)

@@ -467,10 +467,10 @@ class RevisitPenalty:
             self.row_seek.copy_(row[2].bool())
             self.last_blocked.copy_(row[3].bool())
             self.row_started.copy_(row[4] if row.shape[0] > 4 else torch.zeros_like(row[0]))  # saved before row budgets
-            if row.shape[0] > 6:  # saved before the limits were kept: none met
+            if row.shape[0] > 6:  # the pitch limits the episodes had met
                 self.row_reach_hi.copy_(row[5])
                 self.row_reach_lo.copy_(row[6])
-            else:
+            else:  # saved before the limits were kept: none met
                 self.row_reach_hi.fill_(self.max_pitch)
                 self.row_reach_lo.fill_(-self.max_pitch)
         last = state.get("last_view")
