@@ -330,6 +330,12 @@ class PPOAgentConfig:
     its most likely move instead (after the search memory's penalty), so an unsure stop on a look-alike view does not end the
     episode. Use it with ``stop_by``: a slot that finds nothing surer walks back to its most stop-like pose at the end.
     null = every STOP of the argmax (or the sample) stands. At most ``stop_prob``."""
+    stop_near_prob: Optional[float] = None
+    """With ``refine_min_near``: STOP also whenever the policy gives STOP at least this probability (even when a move
+    is more likely, or ``stop_min_prob`` would refuse it) and the stop-offset net (``refine_model``) gives the view at
+    least ``refine_min_near`` of being near the target (within 3 degrees on each axis), so a target the network
+    recognises only half-heartedly (a blurred one) is stopped on when first seen instead of at the end by
+    ``stop_by``'s walk back. null = off."""
     stop_by: int = 0
     """At evaluation, with the search memory on: the step by which the agent stops (set it to T, task.max_steps).
     A slot that has not stopped when the steps left are just enough walks back to the (dead-reckoned) pose where the
@@ -394,6 +400,9 @@ class PPOAgentConfig:
               "null or a probability in (0, 1]")
         check(self.stop_min_prob is None or self.stop_prob is None or self.stop_min_prob <= self.stop_prob,
               "agent.stop_min_prob", self.stop_min_prob, f"at most agent.stop_prob={self.stop_prob}")
+        check(self.stop_near_prob is None or (0 < self.stop_near_prob <= 1 and self.refine_min_near is not None),
+              "agent.stop_near_prob", self.stop_near_prob,
+              "null, or a probability in (0, 1] with agent.refine_min_near (the stop-offset net's near check)")
         check(self.stop_by >= 0, "agent.stop_by", self.stop_by, "0 (off) or a step number (T)")
         check(not self.stop_by_phase or self.stop_by > 0, "agent.stop_by", self.stop_by,
               "a step number (T) with agent.stop_by_phase=true")

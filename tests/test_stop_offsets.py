@@ -219,6 +219,42 @@ def test_agent_searches_on_from_a_stop_the_net_refuses() -> None:
     assert STOP not in actions(30, near=False, revisit_penalty=16.0, stop_by=30)
 
 
+def test_agent_stops_on_a_half_sure_view_the_net_finds_near() -> None:
+    """``stop_near_prob``: a policy fixed at P = (0.1, 0.1, 0.1, 0.4, 0.3) for (UP, DOWN, LEFT, RIGHT, STOP) moves
+    RIGHT. With ``stop_near_prob`` at or below its 0.3 and a net that finds the view near it stops at once, also
+    under a ``stop_min_prob`` of 0.8 that refuses its STOP; a net that finds the view far, or a threshold above
+    0.3, leaves it moving. The option needs the net's near check."""
+    from findview.episode import Episode
+    from findview_baselines.agents.ppo_agent import PPOAgent
+    from findview_baselines.config import PPOAgentConfig
+    from findview_baselines.rl.policy import Policy
+
+    policy = Policy(32, 32, "direct", hidden_size=8)
+    with torch.no_grad():
+        policy.actor.weight.zero_()
+        policy.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.1, 0.1, 0.4, 0.3])))
+    pixels = torch.rand(1, 3, 160, 160, generator=torch.Generator().manual_seed(1))
+    obs = {"view": (pixels * 255).to(torch.uint8), "target": (pixels * 255).to(torch.uint8)}
+
+    def first_action(near: bool, **kw) -> int:
+        refiner = StopRefiner(1, FOV, offsets=_fixed_net(2, 2, near=near, size=160), min_near=0.5)
+        agent = PPOAgent(policy, 1, refiner=refiner, fov=FOV, **kw)
+        agent.reset([0], [Episode("e", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=1)])
+        return int(agent.act(obs)[0])
+
+    assert first_action(near=True) == RIGHT
+    assert first_action(near=True, stop_near_prob=0.29) == STOP
+    assert first_action(near=True, stop_near_prob=0.29, stop_min_prob=0.8, revisit_penalty=16.0) == STOP
+    assert first_action(near=True, stop_near_prob=0.31) == RIGHT
+    assert first_action(near=False, stop_near_prob=0.29) == RIGHT
+    with pytest.raises(ValueError, match="stop_near_prob=0.3.*min_near"):
+        PPOAgent(policy, 1, stop_near_prob=0.3)
+    with pytest.raises(ValueError, match="agent.stop_near_prob.*agent.refine_min_near"):
+        PPOAgentConfig(stop_near_prob=0.3)
+    with pytest.raises(ValueError, match="agent.stop_near_prob"):
+        PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_prob=0.0)
+
+
 def test_files_round_trip_and_bad_files_are_named(trained, tmp_path) -> None:
     net, val = trained
     path = save_stop_offsets(tmp_path / "net.pth", net, {"note": "test"})

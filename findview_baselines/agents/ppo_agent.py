@@ -27,6 +27,10 @@
   likely move instead (after the search memory's penalty), so an unsure stop on a view that only looks like the
   target does not end the episode; with ``stop_by`` the slot still comes back to its most stop-like pose if it finds
   nothing surer.
+- ``stop_near_prob`` (with a refiner with ``min_near``): the slot also STOPs whenever the policy gives STOP at least
+  this probability (whatever its most likely action, and below ``stop_min_prob``) and the stop-offset net finds the
+  view near the target (``min_near``): a blurred target the network recognises only half-heartedly is then stopped
+  on when first seen, not at the end of the episode by ``stop_by``'s walk back.
 - ``stop_by > 0`` (needs the search memory; set it to ``T``): a slot that has not stopped when the steps left are
   just enough walks back to the dead-reckoned pose where the policy's STOP probability was highest and stops
   there (:mod:`findview_baselines.agents.give_up`), instead of running out of steps wherever it is.
@@ -140,6 +144,9 @@ class PPOAgent(Agent):
             (``None``: the argmax, or the sample, decides).
         stop_min_prob: refuse the policy's STOP when its probability is below this, and take the most likely move
             instead (``None``: every STOP of the argmax, or the sample, stands). At most ``stop_prob``.
+        stop_near_prob: with a ``refiner`` with ``min_near``: STOP also whenever the policy gives STOP at least this
+            probability and the refiner's stop-offset net finds the view near the target (its ``min_near``), even
+            when a move is more likely or ``stop_min_prob`` would refuse it (``None``: off). In ``(0, 1]``.
         fov: the views' horizontal field of view, degrees; required when the policy reads its search memory
             (``memory_inputs``: the memory's row band is half a FoV, :func:`~findview_baselines.rl.search_memory.memory_band`).
         stop_by: the step by which a slot stops (``T``): when the steps left are just enough, a slot that has not
@@ -174,6 +181,7 @@ class PPOAgent(Agent):
         mirror_steps: int = 0,
         wide_match_steps: int = 0,
         wide_match_min_peak: float | None = None,
+        stop_near_prob: float | None = None,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -182,7 +190,14 @@ class PPOAgent(Agent):
         if stop_prob is not None and stop_min_prob is not None and float(stop_min_prob) > float(stop_prob):
             raise ValueError(f"stop_min_prob={stop_min_prob} refuses stops that stop_prob={stop_prob} forces: "
                              f"expected stop_min_prob <= stop_prob")
+        if stop_near_prob is not None:
+            min_near = None if refiner is None else refiner.min_near
+            if min_near is None or not 0.0 < float(stop_near_prob) <= 1.0:
+                raise ValueError(
+                    f"stop_near_prob={stop_near_prob} stops where the stop-offset net finds the view near the target: "
+                    f"it needs a refiner with min_near (got {min_near}) and a probability in (0, 1]")
         super().__init__(num_envs, device, seed)
+        self.stop_near_prob = None if stop_near_prob is None else float(stop_near_prob)
         self.stop_prob = None if stop_prob is None else float(stop_prob)
         self.stop_min_prob = None if stop_min_prob is None else float(stop_min_prob)
         self.policy = policy.to(self.device).eval()
@@ -261,6 +276,7 @@ class PPOAgent(Agent):
         mirror_steps: int = 0,
         wide_match_steps: int = 0,
         wide_match_min_peak: float | None = None,
+        stop_near_prob: float | None = None,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -312,6 +328,7 @@ class PPOAgent(Agent):
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_rows, refiner, stop_prob, fov,
             stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps, wide_match_steps, wide_match_min_peak,
+            stop_near_prob=stop_near_prob,
         )
 
     @classmethod
@@ -339,6 +356,7 @@ class PPOAgent(Agent):
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
             stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), mirror_steps=cfg.mirror_steps,
             wide_match_steps=cfg.wide_match_steps, wide_match_min_peak=cfg.wide_match_min_peak,
+            stop_near_prob=cfg.stop_near_prob,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -462,6 +480,8 @@ class PPOAgent(Agent):
             a_t = logits.argmax(dim=-1)
         if self.stop_prob is not None:  # the policy's own STOP probability, before the search memory
             a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
+        if self.stop_near_prob is not None:  # a half-sure STOP where the stop-offset net finds the target near
+            a_t = self._stop_if_near(idx, a_t, dist.probs[:, STOP], rendered)
         stop_like = dist.probs[:, STOP]
         if self.refiner is not None and self.refiner.min_near is not None:
             a_t, stop_like = self._refuse_far(idx, a_t, logits, stop_like, rendered)
@@ -506,6 +526,18 @@ class PPOAgent(Agent):
             logits = logits.index_copy(0, rows, fused.logits)
             self.hidden_mirror[idx[rows]] = h_all[count:]
         return Categorical(logits=logits), h_all[:count]
+
+    def _stop_if_near(self, idx: torch.Tensor, a_t: torch.Tensor, stop_prob: torch.Tensor,
+                      rendered: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        """``stop_near_prob``: the slots ``idx`` not stopping (``a_t`` (K,)) whose policy gives STOP at least
+        ``stop_near_prob`` (``stop_prob`` (K,)) and whose rendered view the stop-offset net finds near the target
+        (at least the refiner's ``min_near``) STOP. Returns the new ``a_t``."""
+        rows = torch.nonzero((a_t != STOP) & (stop_prob >= self.stop_near_prob)).flatten()
+        if not len(rows):
+            return a_t
+        at = idx[rows]
+        near = ~self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
+        return a_t.index_fill(0, rows[near], STOP)
 
     def _refuse_far(self, idx: torch.Tensor, a_t: torch.Tensor, logits: torch.Tensor, stop_like: torch.Tensor,
                     rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
