@@ -403,6 +403,8 @@ class PPOAgentConfig:
         check(self.stop_near_prob is None or (0 < self.stop_near_prob <= 1 and self.refine_min_near is not None),
               "agent.stop_near_prob", self.stop_near_prob,
               "null, or a probability in (0, 1] with agent.refine_min_near (the stop-offset net's near check)")
+        check(self.stop_near_prob is None or self.stop_prob is None or self.stop_near_prob < self.stop_prob,
+              "agent.stop_near_prob", self.stop_near_prob, f"below agent.stop_prob={self.stop_prob}")
         check(self.stop_by >= 0, "agent.stop_by", self.stop_by, "0 (off) or a step number (T)")
         check(not self.stop_by_phase or self.stop_by > 0, "agent.stop_by", self.stop_by,
               "a step number (T) with agent.stop_by_phase=true")

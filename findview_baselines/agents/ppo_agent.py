@@ -28,7 +28,7 @@
   target does not end the episode; with ``stop_by`` the slot still comes back to its most stop-like pose if it finds
   nothing surer.
 - ``stop_near_prob`` (with a refiner with ``min_near``): the slot also STOPs whenever the policy gives STOP at least
-  this probability (whatever its most likely action, and below ``stop_min_prob``) and the stop-offset net finds the
+  this probability (whatever its most likely action, also below ``stop_min_prob``) and the stop-offset net finds the
   view near the target (``min_near``): a blurred target the network recognises only half-heartedly is then stopped
   on when first seen, not at the end of the episode by ``stop_by``'s walk back.
 - ``stop_by > 0`` (needs the search memory; set it to ``T``): a slot that has not stopped when the steps left are
@@ -146,7 +146,8 @@ class PPOAgent(Agent):
             instead (``None``: every STOP of the argmax, or the sample, stands). At most ``stop_prob``.
         stop_near_prob: with a ``refiner`` with ``min_near``: STOP also whenever the policy gives STOP at least this
             probability and the refiner's stop-offset net finds the view near the target (its ``min_near``), even
-            when a move is more likely or ``stop_min_prob`` would refuse it (``None``: off). In ``(0, 1]``.
+            when a move is more likely or ``stop_min_prob`` would refuse it (``None``: off). In ``(0, 1]``, below
+            ``stop_prob`` (which stops at and above it without the net).
         fov: the views' horizontal field of view, degrees; required when the policy reads its search memory
             (``memory_inputs``: the memory's row band is half a FoV, :func:`~findview_baselines.rl.search_memory.memory_band`).
         stop_by: the step by which a slot stops (``T``): when the steps left are just enough, a slot that has not
@@ -191,11 +192,15 @@ class PPOAgent(Agent):
             raise ValueError(f"stop_min_prob={stop_min_prob} refuses stops that stop_prob={stop_prob} forces: "
                              f"expected stop_min_prob <= stop_prob")
         if stop_near_prob is not None:
-            min_near = None if refiner is None else refiner.min_near
-            if min_near is None or not 0.0 < float(stop_near_prob) <= 1.0:
-                raise ValueError(
-                    f"stop_near_prob={stop_near_prob} stops where the stop-offset net finds the view near the target: "
-                    f"it needs a refiner with min_near (got {min_near}) and a probability in (0, 1]")
+            if not 0.0 < float(stop_near_prob) <= 1.0:
+                raise ValueError(f"stop_near_prob must be in (0, 1] or None, got {stop_near_prob!r}")
+            if refiner is None or refiner.min_near is None:
+                raise ValueError(f"stop_near_prob={stop_near_prob} stops where the stop-offset net finds the view near "
+                                 f"the target: it needs a refiner with min_near (a stop-offset net with the near "
+                                 f"output), got {'no refiner' if refiner is None else 'min_near=None'}")
+            if stop_prob is not None and float(stop_near_prob) >= float(stop_prob):
+                raise ValueError(f"stop_near_prob={stop_near_prob} adds stops below stop_prob={stop_prob}, which "
+                                 f"already stops at and above it: expected stop_near_prob < stop_prob")
         super().__init__(num_envs, device, seed)
         self.stop_near_prob = None if stop_near_prob is None else float(stop_near_prob)
         self.stop_prob = None if stop_prob is None else float(stop_prob)
@@ -480,11 +485,12 @@ class PPOAgent(Agent):
             a_t = logits.argmax(dim=-1)
         if self.stop_prob is not None:  # the policy's own STOP probability, before the search memory
             a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
+        checked = None  # slots whose view the stop-offset net has already found near this step
         if self.stop_near_prob is not None:  # a half-sure STOP where the stop-offset net finds the target near
-            a_t = self._stop_if_near(idx, a_t, dist.probs[:, STOP], rendered)
+            a_t, checked = self._stop_if_near(idx, a_t, dist.probs[:, STOP], rendered)
         stop_like = dist.probs[:, STOP]
         if self.refiner is not None and self.refiner.min_near is not None:
-            a_t, stop_like = self._refuse_far(idx, a_t, logits, stop_like, rendered)
+            a_t, stop_like = self._refuse_far(idx, a_t, logits, stop_like, rendered, checked)
         if self.give_up is not None:  # remember the most stop-like pose; walk back to it when the steps left are just enough
             pitch, yaw = self.revisits.pitch[idx], self.revisits.yaw[idx]
             if self.give_up.phase:
@@ -527,28 +533,35 @@ class PPOAgent(Agent):
             self.hidden_mirror[idx[rows]] = h_all[count:]
         return Categorical(logits=logits), h_all[:count]
 
-    def _stop_if_near(self, idx: torch.Tensor, a_t: torch.Tensor, stop_prob: torch.Tensor,
-                      rendered: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    def _stop_if_near(self, idx: torch.Tensor, a_t: torch.Tensor, p_stop: torch.Tensor,
+                      rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``stop_near_prob``: the slots ``idx`` not stopping (``a_t`` (K,)) whose policy gives STOP at least
-        ``stop_near_prob`` (``stop_prob`` (K,)) and whose rendered view the stop-offset net finds near the target
-        (at least the refiner's ``min_near``) STOP. Returns the new ``a_t``."""
-        rows = torch.nonzero((a_t != STOP) & (stop_prob >= self.stop_near_prob)).flatten()
+        ``stop_near_prob`` (``p_stop`` (K,)) and whose rendered view the stop-offset net finds near the target (at
+        least the refiner's ``min_near``) STOP, whatever move the memory, the row search or a walk back due now would
+        have made; the stop is then refined like any other. Returns the new ``a_t`` and the (K,) bool mask of the
+        slots it stopped (``None`` when it asked the net about none), which :meth:`_refuse_far` need not ask again."""
+        rows = torch.nonzero((a_t != STOP) & (p_stop >= self.stop_near_prob)).flatten()
         if not len(rows):
-            return a_t
+            return a_t, None
         at = idx[rows]
         near = ~self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
-        return a_t.index_fill(0, rows[near], STOP)
+        stopped = torch.zeros_like(a_t, dtype=torch.bool).index_put((rows,), near)
+        return torch.where(stopped, torch.full_like(a_t, STOP), a_t), stopped
 
     def _refuse_far(self, idx: torch.Tensor, a_t: torch.Tensor, logits: torch.Tensor, stop_like: torch.Tensor,
-                    rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+                    rendered: tuple[torch.Tensor, torch.Tensor],
+                    checked: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The stop check of ``min_near``: for the slots ``idx`` whose action ``a_t`` is STOP, or (with ``stop_by``)
         whose STOP probability ``stop_like`` would become their most stop-like pose, ask the refiner's net whether the
         view is near the target. A refused STOP becomes the most likely move of ``logits``; a refused view's
-        ``stop_like`` becomes 0, so the walk of ``stop_by`` never goes back to it. Returns the new ``(a_t,
+        ``stop_like`` becomes 0, so the walk of ``stop_by`` never goes back to it. ``checked``: (K,) bool, slots
+        the net has already found near this step (:meth:`_stop_if_near`), not asked again. Returns the new ``(a_t,
         stop_like)``."""
         check = a_t == STOP
         if self.give_up is not None:
             check = check | ((stop_like > self.give_up.best[idx]) & (stop_like >= self.give_up.min_prob))
+        if checked is not None:
+            check = check & ~checked
         rows = torch.nonzero(check).flatten()
         if not len(rows):
             return a_t, stop_like
