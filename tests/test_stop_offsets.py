@@ -184,6 +184,23 @@ def test_refiner_refuses_the_stops_the_net_finds_far() -> None:
         _fixed_net(2, 2).near_prob(img, img)
 
 
+def _fixed_policy(probs: list[float]):
+    """A 32x32 ``direct`` policy whose action probabilities (UP, DOWN, LEFT, RIGHT, STOP) are ``probs`` whatever it
+    sees (zero actor weights, log-probability biases)."""
+    from findview_baselines.rl.policy import Policy
+
+    policy = Policy(32, 32, "direct", hidden_size=8)
+    with torch.no_grad():
+        policy.actor.weight.zero_()
+        policy.actor.bias.copy_(torch.log(torch.tensor(probs)))
+    return policy
+
+
+def _same_view_and_target() -> dict[str, torch.Tensor]:
+    """One 160x160 uint8 noise image as both view and target."""
+    pixels = (torch.rand(1, 3, 160, 160, generator=torch.Generator().manual_seed(1)) * 255).to(torch.uint8)
+    return {"view": pixels, "target": pixels.clone()}
+
 def test_agent_searches_on_from_a_stop_the_net_refuses() -> None:
     """A policy fixed at P = (0.1, 0.05, 0.15, 0.2, 0.5) for (UP, DOWN, LEFT, RIGHT, STOP) stops at once; with a
     net that finds every view far and ``min_near`` the stop is refused for its most likely move, RIGHT, and with
@@ -192,14 +209,9 @@ def test_agent_searches_on_from_a_stop_the_net_refuses() -> None:
     only where the net finds the view near."""
     from findview.episode import Episode
     from findview_baselines.agents.ppo_agent import PPOAgent
-    from findview_baselines.rl.policy import Policy
 
-    policy = Policy(32, 32, "direct", hidden_size=8)
-    with torch.no_grad():
-        policy.actor.weight.zero_()
-        policy.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.05, 0.15, 0.2, 0.5])))
-    pixels = torch.rand(1, 3, 160, 160, generator=torch.Generator().manual_seed(1))
-    obs = {"view": (pixels * 255).to(torch.uint8), "target": (pixels * 255).to(torch.uint8)}
+    policy = _fixed_policy([0.1, 0.05, 0.15, 0.2, 0.5])
+    obs = _same_view_and_target()
 
     def actions(steps: int, near: bool, **kw) -> list[int]:
         refiner = StopRefiner(1, FOV, offsets=_fixed_net(2, 2, near=near, size=160), min_near=0.5)
@@ -228,14 +240,9 @@ def test_agent_stops_on_a_half_sure_view_the_net_finds_near() -> None:
     from findview.episode import Episode
     from findview_baselines.agents.ppo_agent import PPOAgent
     from findview_baselines.config import PPOAgentConfig
-    from findview_baselines.rl.policy import Policy
 
-    policy = Policy(32, 32, "direct", hidden_size=8)
-    with torch.no_grad():
-        policy.actor.weight.zero_()
-        policy.actor.bias.copy_(torch.log(torch.tensor([0.1, 0.1, 0.1, 0.4, 0.3])))
-    pixels = torch.rand(1, 3, 160, 160, generator=torch.Generator().manual_seed(1))
-    obs = {"view": (pixels * 255).to(torch.uint8), "target": (pixels * 255).to(torch.uint8)}
+    policy = _fixed_policy([0.1, 0.1, 0.1, 0.4, 0.3])
+    obs = _same_view_and_target()
 
     def first_action(near: bool, **kw) -> int:
         refiner = StopRefiner(1, FOV, offsets=_fixed_net(2, 2, near=near, size=160), min_near=0.5)
