@@ -485,12 +485,9 @@ class PPOAgent(Agent):
             a_t = logits.argmax(dim=-1)
         if self.stop_prob is not None:  # the policy's own STOP probability, before the search memory
             a_t = torch.where(dist.probs[:, STOP] >= self.stop_prob, torch.full_like(a_t, STOP), a_t)
-        checked = None  # slots whose view the stop-offset net has already found near this step
-        if self.stop_near_prob is not None:  # a half-sure STOP where the stop-offset net finds the target near
-            a_t, checked = self._stop_if_near(idx, a_t, dist.probs[:, STOP], rendered)
         stop_like = dist.probs[:, STOP]
         if self.refiner is not None and self.refiner.min_near is not None:
-            a_t, stop_like = self._refuse_far(idx, a_t, logits, stop_like, rendered, checked)
+            a_t, stop_like = self._refuse_far(idx, a_t, logits, stop_like, rendered)
         if self.give_up is not None:  # remember the most stop-like pose; walk back to it when the steps left are just enough
             pitch, yaw = self.revisits.pitch[idx], self.revisits.yaw[idx]
             if self.give_up.phase:
@@ -533,40 +530,31 @@ class PPOAgent(Agent):
             self.hidden_mirror[idx[rows]] = h_all[count:]
         return Categorical(logits=logits), h_all[:count]
 
-    def _stop_if_near(self, idx: torch.Tensor, a_t: torch.Tensor, p_stop: torch.Tensor,
-                      rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """``stop_near_prob``: the slots ``idx`` not stopping (``a_t`` (K,)) whose policy gives STOP at least
-        ``stop_near_prob`` (``p_stop`` (K,)) and whose rendered view the stop-offset net finds near the target (at
-        least the refiner's ``min_near``) STOP, whatever move the memory, the row search or a walk back due now would
-        have made; the stop is then refined like any other. Returns the new ``a_t`` and the (K,) bool mask of the
-        slots it stopped (``None`` when it asked the net about none), which :meth:`_refuse_far` need not ask again."""
-        rows = torch.nonzero((a_t != STOP) & (p_stop >= self.stop_near_prob)).flatten()
-        if not len(rows):
-            return a_t, None
-        at = idx[rows]
-        near = ~self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
-        stopped = torch.zeros_like(a_t, dtype=torch.bool).index_put((rows,), near)
-        return torch.where(stopped, torch.full_like(a_t, STOP), a_t), stopped
-
     def _refuse_far(self, idx: torch.Tensor, a_t: torch.Tensor, logits: torch.Tensor, stop_like: torch.Tensor,
-                    rendered: tuple[torch.Tensor, torch.Tensor],
-                    checked: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                    rendered: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """The stop check of ``min_near``: for the slots ``idx`` whose action ``a_t`` is STOP, or (with ``stop_by``)
-        whose STOP probability ``stop_like`` would become their most stop-like pose, ask the refiner's net whether the
-        view is near the target. A refused STOP becomes the most likely move of ``logits``; a refused view's
-        ``stop_like`` becomes 0, so the walk of ``stop_by`` never goes back to it. ``checked``: (K,) bool, slots
-        the net has already found near this step (:meth:`_stop_if_near`), not asked again. Returns the new ``(a_t,
+        whose STOP probability ``stop_like`` would become their most stop-like pose, or (with ``stop_near_prob``)
+        whose STOP probability reaches ``stop_near_prob`` while they move, ask the refiner's net whether the view is
+        near the target, once per slot. A moving slot of ``stop_near_prob`` whose view the net finds near STOPs (a
+        half-sure STOP, whatever move the memory, the row search or a walk back due now would have made; it is then
+        refined like any other). A refused STOP becomes the most likely move of ``logits``; a refused view's
+        ``stop_like`` becomes 0, so the walk of ``stop_by`` never goes back to it. Returns the new ``(a_t,
         stop_like)``."""
         check = a_t == STOP
         if self.give_up is not None:
             check = check | ((stop_like > self.give_up.best[idx]) & (stop_like >= self.give_up.min_prob))
-        if checked is not None:
-            check = check & ~checked
+        half_sure = None
+        if self.stop_near_prob is not None:
+            half_sure = (a_t != STOP) & (stop_like >= self.stop_near_prob)
+            check = check | half_sure
         rows = torch.nonzero(check).flatten()
         if not len(rows):
             return a_t, stop_like
         at = idx[rows]
-        refused = rows[self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])]
+        far = self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
+        if half_sure is not None:  # a half-sure view found near: STOP there
+            a_t = a_t.index_put((rows,), torch.where(half_sure[rows] & ~far, STOP, a_t[rows]))
+        refused = rows[far]
         if not len(refused):
             return a_t, stop_like
         moves = logits[refused].clone()
