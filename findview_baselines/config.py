@@ -336,6 +336,10 @@ class PPOAgentConfig:
     least ``refine_min_near`` of being near the target (within 3 degrees on each axis), so a target the network
     recognises only half-heartedly (a blurred one) is stopped on when first seen instead of at the end by
     ``stop_by``'s walk back. null = off."""
+    stop_near_min_near: Optional[float] = None
+    """With ``stop_near_prob``: the stop-offset net's near probability its half-sure STOPs need, in
+    [``refine_min_near``, 1): a stricter bar than the one the policy's own STOPs pass, so a look-alike part of the
+    panorama the net finds near at 0.6-0.95 does not end an episode on a half-sure STOP. null = ``refine_min_near``."""
     stop_by: int = 0
     """At evaluation, with the search memory on: the step by which the agent stops (set it to T, task.max_steps).
     A slot that has not stopped when the steps left are just enough walks back to the (dead-reckoned) pose where the
@@ -405,6 +409,10 @@ class PPOAgentConfig:
               "null, or a probability in (0, 1] with agent.refine_min_near (the stop-offset net's near check)")
         check(self.stop_near_prob is None or self.stop_prob is None or self.stop_near_prob < self.stop_prob,
               "agent.stop_near_prob", self.stop_near_prob, f"below agent.stop_prob={self.stop_prob}")
+        check(self.stop_near_min_near is None or (self.stop_near_prob is not None
+                                                 and self.refine_min_near <= self.stop_near_min_near < 1),
+              "agent.stop_near_min_near", self.stop_near_min_near,
+              f"null, or a probability in [agent.refine_min_near={self.refine_min_near}, 1) with agent.stop_near_prob")
         check(self.stop_by >= 0, "agent.stop_by", self.stop_by, "0 (off) or a step number (T)")
         check(not self.stop_by_phase or self.stop_by > 0, "agent.stop_by", self.stop_by,
               "a step number (T) with agent.stop_by_phase=true")

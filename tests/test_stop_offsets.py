@@ -235,8 +235,10 @@ def test_agent_stops_on_a_half_sure_view_the_net_finds_near() -> None:
     """``stop_near_prob``: a policy fixed at P = (0.1, 0.1, 0.1, 0.4, 0.3) for (UP, DOWN, LEFT, RIGHT, STOP) moves
     RIGHT. With ``stop_near_prob`` at or below its 0.3 and a net that finds the view near it stops at once, also
     under a ``stop_min_prob`` of 0.8 that refuses its STOP; a net that finds the view far, or a threshold above
-    0.3, leaves it moving. Over three slots the net judges each slot's own view. The option needs the net's near
-    check and a threshold below ``stop_prob``."""
+    0.3, leaves it moving. Over three slots the net judges each slot's own view. ``stop_near_min_near`` raises the
+    bar of these stops only: a view the net finds near at 0.71 is a half-sure STOP at the refiner's 0.5 but not at
+    0.75, where the policy's own STOP on it still stands. The option needs the net's near check and a threshold
+    below ``stop_prob``."""
     from findview.episode import Episode
     from findview_baselines.agents.ppo_agent import PPOAgent
     from findview_baselines.config import PPOAgentConfig
@@ -255,21 +257,36 @@ def test_agent_stops_on_a_half_sure_view_the_net_finds_near() -> None:
     assert first_action(near=True, stop_near_prob=0.29, stop_min_prob=0.8, revisit_penalty=16.0) == STOP
     assert first_action(near=True, stop_near_prob=0.31) == RIGHT
     assert first_action(near=False, stop_near_prob=0.29) == RIGHT
-    # three slots, the net's answer per view (bright: near, dark: far): the bright ones stop, and the net is asked
-    # once per slot (the stop check after it does not ask again about a view already found near)
-    refiner = StopRefiner(3, FOV, offsets=_fixed_net(2, 2, near=True, size=160), min_near=0.5)
+    # three slots, the net's near probability per view its shade / 255 (200: 0.78, 50: 0.20, 180: 0.71): the
+    # bright ones stop, and the net is asked once per slot (the stop check after it does not ask again about a
+    # view already found near)
     asked: list[int] = []
 
-    def refuse(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        asked.extend(view[:, 0, 0, 0].tolist())
-        return view[:, 0, 0, 0] < 128
+    def shade_net(slots: int) -> StopRefiner:
+        refiner = StopRefiner(slots, FOV, offsets=_fixed_net(2, 2, near=True, size=160), min_near=0.5)
 
-    refiner.refuse = refuse
-    agent = PPOAgent(policy, 3, refiner=refiner, fov=FOV, stop_near_prob=0.29)
-    agent.reset([0, 1, 2], [Episode(f"e{i}", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=i) for i in range(3)])
-    shades = torch.tensor([200, 50, 180], dtype=torch.uint8)[:, None, None, None].expand(3, 3, 160, 160)
-    assert agent.act({"view": shades.clone(), "target": shades.clone()}).tolist() == [STOP, RIGHT, STOP]
+        def near_prob(view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+            asked.extend(view[:, 0, 0, 0].tolist())
+            return view[:, 0, 0, 0].float() / 255
+
+        refiner.near_prob = near_prob
+        return refiner
+
+    def three_slots(policy: torch.nn.Module, **kw) -> list[int]:
+        agent = PPOAgent(policy, 3, refiner=shade_net(3), fov=FOV, **kw)
+        agent.reset([0, 1, 2], [Episode(f"e{i}", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=i) for i in range(3)])
+        shades = torch.tensor([200, 50, 180], dtype=torch.uint8)[:, None, None, None].expand(3, 3, 160, 160)
+        return agent.act({"view": shades.clone(), "target": shades.clone()}).tolist()
+
+    assert three_slots(policy, stop_near_prob=0.29) == [STOP, RIGHT, STOP]
     assert sorted(asked) == [50, 180, 200]
+    assert three_slots(policy, stop_near_prob=0.29, stop_near_min_near=0.75) == [STOP, RIGHT, RIGHT]
+    sure_policy = _fixed_policy([0.1, 0.1, 0.1, 0.2, 0.5])  # its own STOPs: the refiner's 0.5 bar, not 0.75
+    assert three_slots(sure_policy, stop_near_prob=0.29, stop_near_min_near=0.75) == [STOP, RIGHT, STOP]
+    with pytest.raises(ValueError, match="stop_near_min_near must be in \\[min_near, 1\\)"):
+        PPOAgent(policy, 1, refiner=shade_net(1), fov=FOV, stop_near_prob=0.3, stop_near_min_near=0.4)
+    with pytest.raises(ValueError, match="stop_near_min_near=0.9 .*off"):
+        PPOAgent(policy, 1, refiner=shade_net(1), fov=FOV, stop_near_min_near=0.9)
     with pytest.raises(ValueError, match="stop_near_prob=0.3.*min_near"):
         PPOAgent(policy, 1, stop_near_prob=0.3)
     near_refiner = StopRefiner(1, FOV, offsets=_fixed_net(2, 2, near=True, size=160), min_near=0.5)
@@ -283,6 +300,11 @@ def test_agent_stops_on_a_half_sure_view_the_net_finds_near() -> None:
         PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_prob=0.0)
     with pytest.raises(ValueError, match="agent.stop_near_prob=0.4: expected below agent.stop_prob=0.4"):
         PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_prob=0.4, stop_prob=0.4)
+    with pytest.raises(ValueError, match="agent.stop_near_min_near=0.4: expected .*agent.refine_min_near=0.5"):
+        PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_prob=0.3, stop_near_min_near=0.4)
+    with pytest.raises(ValueError, match="agent.stop_near_min_near"):
+        PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_min_near=0.9)
+    PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_prob=0.3, stop_near_min_near=0.99)
 
 
 def test_files_round_trip_and_bad_files_are_named(trained, tmp_path) -> None:

@@ -148,6 +148,10 @@ class PPOAgent(Agent):
             probability and the refiner's stop-offset net finds the view near the target (its ``min_near``), even
             when a move is more likely or ``stop_min_prob`` would refuse it (``None``: off). In ``(0, 1]``, below
             ``stop_prob`` (which stops at and above it without the net).
+        stop_near_min_near: with ``stop_near_prob``: the net's near probability such a half-sure STOP needs, at
+            least the refiner's ``min_near`` and below 1 (``None``: ``min_near``). A stricter bar for these stops
+            than for the policy's own: a look-alike part of the panorama the net finds near at 0.6-0.95 does not
+            end the episode on a half-sure STOP.
         fov: the views' horizontal field of view, degrees; required when the policy reads its search memory
             (``memory_inputs``: the memory's row band is half a FoV, :func:`~findview_baselines.rl.search_memory.memory_band`).
         stop_by: the step by which a slot stops (``T``): when the steps left are just enough, a slot that has not
@@ -183,6 +187,7 @@ class PPOAgent(Agent):
         wide_match_steps: int = 0,
         wide_match_min_peak: float | None = None,
         stop_near_prob: float | None = None,
+        stop_near_min_near: float | None = None,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -201,8 +206,17 @@ class PPOAgent(Agent):
             if stop_prob is not None and float(stop_near_prob) >= float(stop_prob):
                 raise ValueError(f"stop_near_prob={stop_near_prob} adds stops below stop_prob={stop_prob}, which "
                                  f"already stops at and above it: expected stop_near_prob < stop_prob")
+        if stop_near_min_near is not None:
+            if stop_near_prob is None:
+                raise ValueError(f"stop_near_min_near={stop_near_min_near} is the bar of stop_near_prob's stops, "
+                                 f"which is off (stop_near_prob=None)")
+            if not refiner.min_near <= float(stop_near_min_near) < 1.0:
+                raise ValueError(f"stop_near_min_near must be in [min_near, 1) = [{refiner.min_near}, 1), got "
+                                 f"{stop_near_min_near!r}")
         super().__init__(num_envs, device, seed)
         self.stop_near_prob = None if stop_near_prob is None else float(stop_near_prob)
+        self.stop_near_min_near = (None if stop_near_prob is None else
+                                   float(refiner.min_near if stop_near_min_near is None else stop_near_min_near))
         self.stop_prob = None if stop_prob is None else float(stop_prob)
         self.stop_min_prob = None if stop_min_prob is None else float(stop_min_prob)
         self.policy = policy.to(self.device).eval()
@@ -282,6 +296,7 @@ class PPOAgent(Agent):
         wide_match_steps: int = 0,
         wide_match_min_peak: float | None = None,
         stop_near_prob: float | None = None,
+        stop_near_min_near: float | None = None,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -333,7 +348,7 @@ class PPOAgent(Agent):
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_rows, refiner, stop_prob, fov,
             stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps, wide_match_steps, wide_match_min_peak,
-            stop_near_prob=stop_near_prob,
+            stop_near_prob=stop_near_prob, stop_near_min_near=stop_near_min_near,
         )
 
     @classmethod
@@ -361,7 +376,7 @@ class PPOAgent(Agent):
             stop_prob=cfg.stop_prob, fov=cfg.fov, stop_by=cfg.stop_by, stop_min_prob=cfg.stop_min_prob,
             stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), mirror_steps=cfg.mirror_steps,
             wide_match_steps=cfg.wide_match_steps, wide_match_min_peak=cfg.wide_match_min_peak,
-            stop_near_prob=cfg.stop_near_prob,
+            stop_near_prob=cfg.stop_near_prob, stop_near_min_near=cfg.stop_near_min_near,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -535,8 +550,8 @@ class PPOAgent(Agent):
         """The stop check of ``min_near``: for the slots ``idx`` whose action ``a_t`` is STOP, or (with ``stop_by``)
         whose STOP probability ``stop_like`` would become their most stop-like pose, or (with ``stop_near_prob``)
         whose STOP probability reaches ``stop_near_prob`` while they move, ask the refiner's net whether the view is
-        near the target, once per slot. A moving slot of ``stop_near_prob`` whose view the net finds near STOPs (a
-        half-sure STOP, whatever move the memory, the row search or a walk back due now would have made; it is then
+        near the target, once per slot. A moving slot of ``stop_near_prob`` whose view the net finds near (at least
+        ``stop_near_min_near``) STOPs (a half-sure STOP, whatever move the memory, the row search or a walk back due now would have made; it is then
         refined like any other). A refused STOP becomes the most likely move of ``logits``; a refused view's
         ``stop_like`` becomes 0, so the walk of ``stop_by`` never goes back to it. Returns the new ``(a_t,
         stop_like)``."""
@@ -551,9 +566,11 @@ class PPOAgent(Agent):
         if not len(rows):
             return a_t, stop_like
         at = idx[rows]
-        far = self.refiner.refuse(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
+        near = self.refiner.near_prob(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
+        far = near < self.refiner.min_near
         if half_sure is not None:  # a half-sure view found near: STOP there
-            a_t = a_t.index_put((rows,), torch.where(half_sure[rows] & ~far, STOP, a_t[rows]))
+            sure = half_sure[rows] & (near >= self.stop_near_min_near)
+            a_t = a_t.index_put((rows,), torch.where(sure, STOP, a_t[rows]))
         refused = rows[far]
         if not len(refused):
             return a_t, stop_like

@@ -179,12 +179,17 @@ class StopRefiner:
         self.refining[env_ids] = False
         self.moves[env_ids] = 0
 
+    def near_prob(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``(B,)`` float on the views' device: the net's probability that each view ``(B, 3, H, W)`` is near its
+        target (within 3 degrees on each axis); needs ``min_near`` (a net with the near output)."""
+        if self.min_near is None:
+            raise ValueError("StopRefiner.near_prob: no min_near given (a stop-offset net with the near output)")
+        return self.offsets.to(view.device).near_prob(view, target)
+
     def refuse(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """``(B,)`` bool on the views' device: the stops to refuse, where the net's probability that the view
         ``(B, 3, H, W)`` is near its target is below ``min_near`` (a look-alike part of the panorama)."""
-        if self.min_near is None:
-            raise ValueError("StopRefiner.refuse: no min_near given")
-        return self.offsets.to(view.device).near_prob(view, target) < self.min_near
+        return self.near_prob(view, target) < self.min_near
 
     def decide(self, env_ids: torch.Tensor, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Actions (len(env_ids),) for slots that want to stop or are refining: one degree towards the
