@@ -29,8 +29,9 @@
   nothing surer.
 - ``stop_near_prob`` (with a refiner with ``min_near``): the slot also STOPs whenever the policy gives STOP at least
   this probability (whatever its most likely action, also below ``stop_min_prob``) and the stop-offset net finds the
-  view near the target (``min_near``): a blurred target the network recognises only half-heartedly is then stopped
-  on when first seen, not at the end of the episode by ``stop_by``'s walk back.
+  view near the target (at least ``stop_near_min_near``, default ``min_near``): a blurred target the network
+  recognises only half-heartedly is then stopped on when first seen, not at the end of the episode by ``stop_by``'s
+  walk back.
 - ``stop_by > 0`` (needs the search memory; set it to ``T``): a slot that has not stopped when the steps left are
   just enough walks back to the dead-reckoned pose where the policy's STOP probability was highest and stops
   there (:mod:`findview_baselines.agents.give_up`), instead of running out of steps wherever it is.
@@ -551,8 +552,8 @@ class PPOAgent(Agent):
         whose STOP probability ``stop_like`` would become their most stop-like pose, or (with ``stop_near_prob``)
         whose STOP probability reaches ``stop_near_prob`` while they move, ask the refiner's net whether the view is
         near the target, once per slot. A moving slot of ``stop_near_prob`` whose view the net finds near (at least
-        ``stop_near_min_near``) STOPs (a half-sure STOP, whatever move the memory, the row search or a walk back due now would have made; it is then
-        refined like any other). A refused STOP becomes the most likely move of ``logits``; a refused view's
+        ``stop_near_min_near``) STOPs (a half-sure STOP, whatever move the memory, the row search or a walk back due
+        now would have made; it is then refined like any other). A refused STOP becomes the most likely move of ``logits``; a refused view's
         ``stop_like`` becomes 0, so the walk of ``stop_by`` never goes back to it. Returns the new ``(a_t,
         stop_like)``."""
         check = a_t == STOP
