@@ -155,6 +155,30 @@ def test_far_pairs_leave_the_near_pairs_as_they_were(panoramas) -> None:
         sample_pairs(panoramas[:1], 10, FOV, SIZE, seed=3, far_fraction=1.0)
 
 
+def test_lookalike_far_views_are_the_repeats_of_a_repeating_panorama(panoramas) -> None:
+    """A panorama that repeats every 90 degrees of yaw: with ``lookalike=128`` most views put anywhere are at a
+    repeat of their target (pitch within 10 degrees, yaw within 10 of 90 or 180 degrees away; about 3% of uniform
+    poses are; 71-91% over seeds 3-8), with ``lookalike=1`` few are (0-11%); the near pairs and the far pairs near their target are as without it."""
+    tile = panoramas[0][:, :, :256]
+    repeating = [tile.repeat(1, 1, 4).contiguous()]
+
+    def at_repeat(pairs) -> torch.Tensor:
+        off = pairs.dyaw.abs()
+        return (pairs.dpitch.abs() <= 10) & (((off - 90).abs() <= 10) | ((off - 180).abs() <= 10))
+
+    kw = dict(corruptions=("fog",), clean_fraction=1.0, far_fraction=0.9)
+    plain = sample_pairs(repeating, 120, FOV, SIZE, seed=3, **kw)
+    alike = sample_pairs(repeating, 120, FOV, SIZE, seed=3, lookalike=128, **kw)
+    moved = (alike.dpitch != plain.dpitch) | (alike.dyaw != plain.dyaw)
+    assert 30 <= int(moved.sum()) <= 80  # the far views put anywhere, about half of the far ones
+    assert at_repeat(alike)[moved].float().mean().item() >= 0.5
+    assert at_repeat(plain)[moved].float().mean().item() <= 0.25
+    assert not alike.near[moved].any()
+    torch.testing.assert_close(alike.features[~moved], plain.features[~moved], rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="lookalike"):
+        sample_pairs(repeating, 10, FOV, SIZE, seed=3, lookalike=0)
+
+
 def test_a_net_trained_with_far_pairs_refuses_views_elsewhere(panoramas) -> None:
     """Trained on 600 pairs of two panoramas, a third of them far (clean targets): on the third panorama at least
     90% of views within 2 degrees of their target are kept and at least 75% of far views refused (the misses are

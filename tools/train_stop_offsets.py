@@ -11,7 +11,8 @@ rendered from the **train** panoramas of ``--splits`` (``--pairs`` of them, plus
 corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
 offset per axis (findview_baselines/agents/stop_offsets.py). A ``--far-fraction`` of the pairs (and of the val
 pairs) put the view elsewhere on the panorama instead, so that the net also learns whether a view is near its
-target at all (the near output ``agent.refine_min_near`` uses to refuse stops on look-alike views).
+target at all (the near output ``agent.refine_min_near`` uses to refuse stops on look-alike views); with
+``--far-lookalike k`` each such view put anywhere is the most alike of k random poses (the look-alikes themselves).
 ``--val-pairs`` pairs from the **val** panoramas report how often a view on its target is left alone and how often
 a view one degree off is sent the right way, and with the near output how often a view at most 2 degrees off is
 kept and a far one refused, per corruption (the
@@ -60,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--far-fraction", type=float, default=0.25,
                    help="share of --pairs and --val-pairs whose view is far from the target, for the near output "
                         "(agent.refine_min_near); 0: a net without it (default 0.25)")
+    p.add_argument("--far-lookalike", type=int, default=1,
+                   help="each far view put anywhere on the panorama is the most alike of this many random poses (the "
+                        "look-alikes the near output must refuse); 1: a random pose (default 1)")
     p.add_argument("--blur-pairs", type=int, default=10000, help="more training pairs, --blur-corruptions only (default 10000)")
     p.add_argument("--blur-corruptions", default="motion_blur,glass_blur", help="comma-separated corruption names")
     p.add_argument("--val-pairs", type=int, default=3000, help="val pairs for the report (default 3000)")
@@ -77,10 +81,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     blur = [c for c in args.blur_corruptions.split(",") if c]
     bad = [c for c in blur if c not in NAMES]
-    if bad or args.size < 142 or args.pairs < 1 or args.val_pairs < 1 or not 0 <= args.far_fraction < 1:
+    if (bad or args.size < 142 or args.pairs < 1 or args.val_pairs < 1 or not 0 <= args.far_fraction < 1
+            or args.far_lookalike < 1):
         print(f"train_stop_offsets: expected corruption names from {', '.join(NAMES)} (got {bad}), --size >= 142 "
-              f"pixels, positive --pairs / --val-pairs and --far-fraction in [0, 1) (got {args.far_fraction})",
-              file=sys.stderr)
+              f"pixels, positive --pairs / --val-pairs, --far-fraction in [0, 1) (got {args.far_fraction}) and "
+              f"--far-lookalike >= 1 (got {args.far_lookalike})", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
     start = time.time()
@@ -92,10 +97,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"{len(train_panos)} train and {len(val_panos)} val panoramas; sampling pairs", flush=True)
     far = args.far_fraction
-    parts = [sample_pairs(train_panos, args.pairs, args.fov, args.size, args.seed, progress=True, far_fraction=far)]
+    alike = args.far_lookalike
+    parts = [sample_pairs(train_panos, args.pairs, args.fov, args.size, args.seed, progress=True, far_fraction=far,
+                          lookalike=alike)]
     if args.blur_pairs and blur:
         parts.append(sample_pairs(train_panos, args.blur_pairs, args.fov, args.size, args.seed + 1, blur, progress=True))
-    val = sample_pairs(val_panos, args.val_pairs, args.fov, args.size, args.seed + 2, progress=True, far_fraction=far)
+    val = sample_pairs(val_panos, args.val_pairs, args.fov, args.size, args.seed + 2, progress=True, far_fraction=far,
+                       lookalike=alike)
     net = fit(Pairs.cat(parts), args.fov, args.size, args.epochs, args.seed)
     report = accuracy(net, val, args.min_stay, args.min_near)
     columns = ["stay", "one_off"] + (["keep", "refuse"] if net.near else [])
@@ -103,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, r in report.items():
         print(f"{name:18s}" + "".join(f" {r[c]:8.3f}" for c in columns))
     meta = {"command": " ".join(sys.argv), "splits": str(args.splits), "pairs": args.pairs, "far_fraction": far,
-            "min_near": args.min_near,
+            "far_lookalike": alike, "min_near": args.min_near,
             "blur_pairs": args.blur_pairs, "blur_corruptions": blur, "epochs": args.epochs, "seed": args.seed,
             "min_stay": args.min_stay, "val": report, "seconds": round(time.time() - start, 1)}
     save_stop_offsets(out, net, meta)

@@ -6,7 +6,10 @@ rendered ``(dpitch, dyaw)`` degrees from it: each axis 0 with probability 0.4, e
 label is the offset per axis, clipped to -2..2. With ``far_fraction`` some views are put far from their target
 instead (half anywhere on the panorama, half 4-30 degrees off on one axis and up to 30 on the other): the negatives
 of the net's near output (a view within :data:`~findview_baselines.agents.stop_offsets.NEAR_DEGREES` on both axes
-is near). Only the features of a pair are kept (:func:`pair_features`), so memory grows by about 3 KB a pair.
+is near). With ``lookalike`` = k > 1 each view put anywhere is the most alike of k such poses instead (the highest
+normalised correlation of grey 32x32 renders of view and clean target, poses within 10 degrees of the target on both
+axes excluded): the look-alike parts of a panorama (a forest's trees, a hall's windows) the near output must refuse.
+Only the features of a pair are kept (:func:`pair_features`), so memory grows by about 3 KB a pair.
 
 :func:`sample_pairs` makes them, :func:`fit` trains the MLP (Adam, cosine learning rate, cross-entropy of both axes)
 and :func:`accuracy` reports what the refinement needs: how often a view on its target is left alone, and how often
@@ -72,10 +75,11 @@ def _axis_offsets(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _far_offsets(seed: int, n: int, pitch: np.ndarray, yaw: np.ndarray, far_fraction: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which of ``n`` pairs get a far view, and its offsets ``(dpitch, dyaw)`` from the target (degrees, yaw wrapped
-    to -180..180): half at a uniform pose (pitch -60..60), half 4-30 degrees off on one axis and 0-30 on the other,
-    either sign. Drawn from their own stream so that ``far_fraction=0`` leaves the near pairs as they were."""
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Which of ``n`` pairs get a far view, its offsets ``(dpitch, dyaw)`` from the target (degrees, yaw wrapped
+    to -180..180), and which of them are anywhere: half at a uniform pose (pitch -60..60), half 4-30 degrees off on
+    one axis and 0-30 on the other, either sign. Drawn from their own stream so that ``far_fraction=0`` leaves the
+    near pairs as they were."""
     rng = np.random.default_rng([seed, 1])
     far = rng.random(n) < far_fraction
     anywhere = rng.random(n) < 0.5
@@ -85,20 +89,60 @@ def _far_offsets(seed: int, n: int, pitch: np.ndarray, yaw: np.ndarray, far_frac
     near_p, near_y = np.where(pitch_major, major, minor), np.where(pitch_major, minor, major)
     any_p = rng.integers(-60, 61, n) - pitch
     any_y = (rng.integers(-179, 181, n) - yaw + 180) % 360 - 180
-    return far, np.where(anywhere, any_p, near_p), np.where(anywhere, any_y, near_y)
+    return far, np.where(anywhere, any_p, near_p), np.where(anywhere, any_y, near_y), far & anywhere
+
+
+_THUMB = 32  # side of the renders that pick look-alike views, pixels
+_APART = 10  # a look-alike candidate is at least this far from its target on one axis, degrees
+
+
+def _thumbnails(equi: torch.Tensor, pitch: np.ndarray, yaw: np.ndarray, fov: float) -> torch.Tensor:
+    """``(len(pitch), THUMB * THUMB)`` grey renders of one panorama ``(3, He, 2 He)`` at the poses (degrees), each
+    zero-mean and unit-norm (their dot product is the normalised correlation)."""
+    views = equi2pers(equi[None].expand(len(pitch), -1, -1, -1), torch.as_tensor(pitch, dtype=torch.float32),
+                      torch.as_tensor(yaw, dtype=torch.float32), fov, _THUMB, _THUMB).float()
+    grey = (views * torch.tensor([0.299, 0.587, 0.114])[None, :, None, None]).sum(1).flatten(1)
+    grey = grey - grey.mean(1, keepdim=True)
+    return grey / grey.norm(dim=1, keepdim=True).clamp_min(1e-6)
+
+
+def _lookalike_offsets(seed: int, panoramas: Sequence[torch.Tensor], pano: np.ndarray, pitch: np.ndarray,
+                       yaw: np.ndarray, rows: np.ndarray, k: int, fov: float) -> tuple[np.ndarray, np.ndarray]:
+    """For the pairs ``rows``: the offsets ``(dpitch, dyaw)`` (degrees, yaw wrapped) of the most alike of ``k``
+    uniform poses (pitch -60..60) at least ``_APART`` degrees from the target on one axis, its own stream."""
+    rng = np.random.default_rng([seed, 2])
+    cand_p = rng.integers(-60, 61, (len(rows), k))
+    cand_y = rng.integers(-179, 181, (len(rows), k))
+    dp = cand_p - pitch[rows, None]
+    dy = (cand_y - yaw[rows, None] + 180) % 360 - 180
+    score = np.full((len(rows), k), -np.inf)
+    for m in np.unique(pano[rows]):
+        sel = np.flatnonzero(pano[rows] == m)
+        for a in range(0, len(sel), _CHUNK):
+            part = sel[a:a + _CHUNK]
+            target = _thumbnails(panoramas[m], pitch[rows[part]], yaw[rows[part]], fov)
+            cand = _thumbnails(panoramas[m], cand_p[part].ravel(), cand_y[part].ravel(), fov).view(len(part), k, -1)
+            score[part] = torch.einsum("nd,nkd->nk", target, cand).numpy()
+    score[(np.abs(dp) < _APART) & (np.abs(dy) < _APART)] = -np.inf
+    best = np.argmax(score, axis=1)  # every row has an allowed candidate unless all k fall within _APART
+    pick = np.arange(len(rows))
+    return dp[pick, best], dy[pick, best]
 
 
 def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: int, seed: int,
                  corruptions: Sequence[str] = NAMES, clean_fraction: float = 0.2, progress: bool = False,
-                 far_fraction: float = 0.0) -> Pairs:
+                 far_fraction: float = 0.0, lookalike: int = 1) -> Pairs:
     """``n`` pairs from ``panoramas`` (each ``(3, He, 2 He)`` uint8), views ``size x size`` pixels over ``fov``
     degrees, targets corrupted by one of ``corruptions`` (or clean, ``clean_fraction``), a ``far_fraction`` of the
-    views far from their target (module docstring); reproducible from ``seed``."""
+    views far from their target, those put anywhere the most alike of ``lookalike`` poses (module docstring);
+    reproducible from ``seed``."""
     unknown = [c for c in corruptions if c not in NAMES]
     if unknown or not corruptions:
         raise ValueError(f"corruptions {list(corruptions)}: expected names from {', '.join(NAMES)}")
     if not 0.0 <= far_fraction < 1.0:
         raise ValueError(f"far_fraction must be in [0, 1), got {far_fraction}")
+    if int(lookalike) < 1:
+        raise ValueError(f"lookalike must be a number of candidate poses >= 1 (1: a uniform pose), got {lookalike}")
     if not panoramas:
         raise ValueError("sample_pairs: no panoramas")
     rng = np.random.default_rng(seed)
@@ -111,7 +155,10 @@ def sample_pairs(panoramas: Sequence[torch.Tensor], n: int, fov: float, size: in
     corruption = np.where(rng.random(n) < clean_fraction, -1, names[rng.integers(0, len(names), n)])
     severity = rng.integers(1, 6, n)
     if far_fraction > 0:
-        far, far_p, far_y = _far_offsets(seed, n, pitch, yaw, far_fraction)
+        far, far_p, far_y, anywhere = _far_offsets(seed, n, pitch, yaw, far_fraction)
+        if int(lookalike) > 1 and anywhere.any():
+            rows = np.flatnonzero(anywhere)
+            far_p[rows], far_y[rows] = _lookalike_offsets(seed, panoramas, pano, pitch, yaw, rows, int(lookalike), fov)
         dpitch, dyaw = np.where(far, far_p, dpitch), np.where(far, far_y, dyaw)
     features = []
     with tqdm(total=n, unit="pair", disable=not progress, dynamic_ncols=True) as bar:
