@@ -35,7 +35,7 @@ from findview_baselines.agents.stop_offsets import (
     StopOffsetNet,
     pair_features,
 )
-from findview_baselines.agents.stop_refine import move_towards
+from findview_baselines.agents.stop_refine import gray, move_towards
 
 __all__ = ["Pairs", "sample_pairs", "fit", "accuracy"]
 
@@ -100,8 +100,8 @@ def _thumbnails(equi: torch.Tensor, pitch: np.ndarray, yaw: np.ndarray, fov: flo
     """``(len(pitch), THUMB * THUMB)`` grey renders of one panorama ``(3, He, 2 He)`` at the poses (degrees), each
     zero-mean and unit-norm (their dot product is the normalised correlation)."""
     views = equi2pers(equi[None].expand(len(pitch), -1, -1, -1), torch.as_tensor(pitch, dtype=torch.float32),
-                      torch.as_tensor(yaw, dtype=torch.float32), fov, _THUMB, _THUMB).float()
-    grey = (views * torch.tensor([0.299, 0.587, 0.114])[None, :, None, None]).sum(1).flatten(1)
+                      torch.as_tensor(yaw, dtype=torch.float32), fov, _THUMB, _THUMB)
+    grey = gray(views).flatten(1)
     grey = grey - grey.mean(1, keepdim=True)
     return grey / grey.norm(dim=1, keepdim=True).clamp_min(1e-6)
 
