@@ -158,7 +158,8 @@ def test_far_pairs_leave_the_near_pairs_as_they_were(panoramas) -> None:
 def test_lookalike_far_views_are_the_repeats_of_a_repeating_panorama(panoramas) -> None:
     """A panorama that repeats every 90 degrees of yaw: with ``lookalike=128`` most views put anywhere are at a
     repeat of their target (pitch within 10 degrees, yaw within 10 of 90 or 180 degrees away; about 3% of uniform
-    poses are; 71-91% over seeds 3-8), with ``lookalike=1`` few are (0-11%); the near pairs and the far pairs near their target are as without it."""
+    poses are; 71-91% over seeds 3-8), with ``lookalike=1`` few are (0-11%); the near pairs and the far pairs near
+    their target are as without it."""
     tile = panoramas[0][:, :, :256]
     repeating = [tile.repeat(1, 1, 4).contiguous()]
 
