@@ -419,8 +419,8 @@ def test_tool_refuses_bad_input(tmp_path) -> None:
     assert run.returncode == 2 and "--overwrite" in run.stderr and out.read_bytes() == b"x"
 
 
-def test_tool_trains_a_file_the_agent_loads(panoramas, tmp_path) -> None:
-    """End to end on two tiny panorama folders: the tool writes a file with its settings and val report."""
+def _panorama_folder(panoramas, tmp_path) -> tuple[Path, Path]:
+    """The panoramas as PNGs under ``tmp_path/panos`` and a splits.json naming the first two train, the third val."""
     root = tmp_path / "panos"
     root.mkdir()
     entries = []
@@ -429,6 +429,12 @@ def test_tool_trains_a_file_the_agent_loads(panoramas, tmp_path) -> None:
         entries.append({"image": f"p{i}.png", "label": "x"})
     splits = tmp_path / "splits.json"
     splits.write_text(json.dumps({"root": str(root), "splits": {"train": entries[:2], "val": entries[2:]}}))
+    return root, splits
+
+
+def test_tool_trains_a_file_the_agent_loads(panoramas, tmp_path) -> None:
+    """End to end on two tiny panorama folders: the tool writes a file with its settings and val report."""
+    root, splits = _panorama_folder(panoramas, tmp_path)
     out = tmp_path / "net.pth"
     run = subprocess.run(
         [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py"), "--splits", str(splits), "--root", str(root),
@@ -440,3 +446,41 @@ def test_tool_trains_a_file_the_agent_loads(panoramas, tmp_path) -> None:
     loaded = load_stop_offsets(out, fov=FOV, size=SIZE)
     assert loaded.size == SIZE and loaded.near  # the default far pairs give it the near output
     assert {"keep", "refuse"} <= set(state["meta"]["val"]["clean"])
+
+
+def _report_rows(stdout: str, model: Path, bar: float) -> dict[str, list[float]]:
+    """The rows of ``tools/report_stop_offsets.py``'s block for ``model`` at ``bar``: name -> [n, columns...]."""
+    lines = stdout.splitlines()
+    start = lines.index(f"{model}, min_near {bar:g}") + 2
+    rows = {}
+    for line in lines[start:]:
+        if not line.strip():
+            break
+        name, *values = line.split()
+        rows[name] = [float(v) for v in values]
+    return rows
+
+
+def test_report_tool_scores_each_net_on_the_same_pairs(panoramas, tmp_path) -> None:
+    """Two nets of fixed answers (on target, surely near / surely far) on 60 val pairs, a quarter far: the near
+    one keeps every view within 2 degrees and refuses no far view, the far one the opposite, at both bars; both
+    leave every view on its target alone; every row counts its pairs and ``all`` counts them all."""
+    root, splits = _panorama_folder(panoramas, tmp_path)
+    near = save_stop_offsets(tmp_path / "near.pth", _fixed_net(2, 2, near=True), {})
+    far = save_stop_offsets(tmp_path / "far.pth", _fixed_net(2, 2, near=False), {})
+    tool = [sys.executable, str(ROOT / "tools" / "report_stop_offsets.py"), "--splits", str(splits), "--root",
+            str(root)]
+    run = subprocess.run(tool + ["--models", str(near), str(far), "--pairs", "60", "--min-near", "0.5", "0.99"],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+    for model, keep, refuse in ((near, 1.0, 0.0), (far, 0.0, 1.0)):
+        for bar in (0.5, 0.99):
+            rows = _report_rows(run.stdout, model, bar)
+            assert rows["all"][:2] == [60, 1.0]  # n, stay
+            assert rows["all"][3:] == [keep, refuse]
+            assert sum(r[0] for name, r in rows.items() if name != "all") == 60
+    other = save_stop_offsets(tmp_path / "other.pth", _fixed_net(2, 2, near=True, size=192), {})
+    run = subprocess.run(tool + ["--models", str(near), str(other)], capture_output=True, text=True)
+    assert run.returncode == 2 and "other.pth: made for FoV 90 and 192x192 views" in run.stderr
+    run = subprocess.run(tool + ["--models", str(near), "--min-near", "1.5"], capture_output=True, text=True)
+    assert run.returncode == 2 and "--min-near bars in (0, 1) (got [1.5])" in run.stderr

@@ -33,20 +33,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from findview.corruptions import NAMES  # noqa: E402
-from findview.dataset.splits import SPLITS_FILE, MissingDataFile, load_split  # noqa: E402
-from findview.imageio import load_panorama  # noqa: E402
+from findview.dataset.splits import MissingDataFile  # noqa: E402
 from findview_baselines.agents.stop_offsets import save_stop_offsets  # noqa: E402
-from findview_baselines.training.stop_offsets import Pairs, accuracy, fit, sample_pairs  # noqa: E402
-
-
-def _panoramas(splits: Path, root: Path, split: str) -> list[torch.Tensor]:
-    """The panoramas of ``split`` in the splits file ``splits`` (images under ``root``), as (3, He, 2 He) uint8."""
-    if splits.name != SPLITS_FILE:
-        raise ValueError(f"{splits}: expected the {SPLITS_FILE} of tools/make_dataset.py")
-    entries = load_split(splits.parent, split, root=root)
-    if not entries:
-        raise ValueError(f"{splits}: the {split!r} split is empty")
-    return [torch.from_numpy(load_panorama(e.path)).permute(2, 0, 1).contiguous() for e in entries]
+from findview_baselines.training.stop_offsets import (  # noqa: E402
+    Pairs,
+    accuracy,
+    fit,
+    sample_pairs,
+    split_panoramas,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,8 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     start = time.time()
     try:
-        train_panos = _panoramas(Path(args.splits), Path(args.root), "train")
-        val_panos = _panoramas(Path(args.splits), Path(args.root), "val")
+        train_panos = split_panoramas(Path(args.splits), Path(args.root), "train")
+        val_panos = split_panoramas(Path(args.splits), Path(args.root), "val")
     except (ValueError, MissingDataFile) as err:  # PanoramaError and DatasetError are ValueErrors
         print(f"train_stop_offsets: {err}", file=sys.stderr)
         return 2

@@ -19,6 +19,7 @@ a view one degree off is sent the right way. ``tools/train_stop_offsets.py`` is 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -27,6 +28,8 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from findview.corruptions import NAMES, corrupt
+from findview.dataset.splits import SPLITS_FILE, load_split
+from findview.imageio import load_panorama
 from findview.sim.equi2pers import equi2pers
 from findview_baselines.agents.stop_offsets import (
     FEATURES,
@@ -37,7 +40,7 @@ from findview_baselines.agents.stop_offsets import (
 )
 from findview_baselines.agents.stop_refine import gray, move_towards
 
-__all__ = ["Pairs", "sample_pairs", "fit", "accuracy"]
+__all__ = ["Pairs", "split_panoramas", "sample_pairs", "fit", "accuracy"]
 
 _CHUNK = 500
 _MID = OFFSET_CLASSES // 2
@@ -67,6 +70,18 @@ class Pairs:
     def cat(parts: Sequence["Pairs"]) -> "Pairs":
         return Pairs(*(torch.cat([getattr(p, k) for p in parts]) for k in
                        ("features", "dpitch", "dyaw", "corruption", "severity")))
+
+
+def split_panoramas(splits: Path, root: Path, split: str) -> list[torch.Tensor]:
+    """The panoramas of ``split`` in the splits file ``splits`` (tools/make_dataset.py's, images under ``root``),
+    each ``(3, He, 2 He)`` uint8. Raises ``ValueError`` naming the file for another file or an empty split, and
+    :class:`~findview.dataset.splits.MissingDataFile` for a missing one."""
+    if splits.name != SPLITS_FILE:
+        raise ValueError(f"{splits}: expected the {SPLITS_FILE} of tools/make_dataset.py")
+    entries = load_split(splits.parent, split, root=root)
+    if not entries:
+        raise ValueError(f"{splits}: the {split!r} split is empty")
+    return [torch.from_numpy(load_panorama(e.path)).permute(2, 0, 1).contiguous() for e in entries]
 
 
 def _axis_offsets(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -232,7 +247,7 @@ def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float, min_near: float 
     move goes towards the target, with the refinement's rule (move while P(on target) < ``min_stay``, on the axis
     with the larger predicted offset, yaw on ties). With the near output: ``keep``, the share of views at most 2
     degrees off on each axis whose P(near) is at least ``min_near`` (a stop there is kept), and ``refuse``, the
-    share of far views below it (a stop there is refused)."""
+    share of far views below it (a stop there is refused). The last entry, ``all``, is the same over every pair."""
     pitch_logits, yaw_logits, near_logit = net.outputs(pairs.features)  # one pass for the offsets and the near output
     move_pitch, move_yaw = move_towards(*net.reading(pitch_logits, yaw_logits), min_stay)
     kept = torch.sigmoid(near_logit) >= min_near if near_logit is not None else None
@@ -241,12 +256,11 @@ def accuracy(net: StopOffsetNet, pairs: Pairs, min_stay: float, min_near: float 
     right_way = torch.where(move_yaw != 0, move_yaw == -pairs.dyaw.sign(), move_pitch == -pairs.dpitch.sign())
     on = (pairs.dpitch == 0) & (pairs.dyaw == 0)
     one_off = ~on & (pairs.dpitch.abs() <= 1) & (pairs.dyaw.abs() <= 1)
+    groups = [("clean" if c < 0 else NAMES[c], pairs.corruption == c) for c in [-1, *range(len(NAMES))]]
     out = {}
-    for c in [-1, *range(len(NAMES))]:
-        rows = pairs.corruption == c
+    for name, rows in groups + [("all", torch.ones_like(on))]:
         if not rows.any():
             continue
-        name = "clean" if c < 0 else NAMES[c]
         a, b = rows & on, rows & one_off
         out[name] = {
             "stay": float(stay[a].float().mean()) if a.any() else float("nan"),
