@@ -17,7 +17,8 @@ target at all (the near output ``agent.refine_min_near`` uses to refuse stops on
 a view one degree off is sent the right way, and with the near output how often a view at most 2 degrees off is
 kept and a far one refused, per corruption (the
 ``stay`` / ``one_off`` / ``keep`` / ``refuse`` of findview_baselines/training/stop_offsets.py, ``accuracy``); they
-are stored in the file with the command's settings. The file is written atomically; an existing ``--out`` is
+are stored in the file with the command's settings (``tools/report_stop_offsets.py`` scores other nets on the same
+pairs). The file is written atomically; an existing ``--out`` is
 replaced only with ``--overwrite``. Bad input prints one line and exits with status 2.
 """
 
