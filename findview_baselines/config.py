@@ -259,6 +259,10 @@ class PPOAgentConfig:
     """With ``revisit_row_stride``: steps at one search row after which the row search moves on to the next even if
     that row is not looked around (a learned agent unsure which row is next can zigzag up and down a column at a
     time and never finish one). 0 = no limit."""
+    revisit_row_hold: bool = False
+    """With ``revisit_row_stride``: once on its search row, the agent may not move more than half a stride above or
+    below it until the row search moves on (a policy that paces a column walks off a row as soon as it is brought
+    there; findview_baselines/rl/search_memory.py, ``RowSearch.hold``)."""
     revisit_near_rows: int = 0
     """With the search memory on: a move also pays ``revisit_near_penalty`` per visit of the most visited cell near
     its destination (a yaw move: its column within this many rows; a pitch move: its column up to this many rows

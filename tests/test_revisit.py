@@ -256,6 +256,41 @@ def test_row_budget_moves_a_zigzag_that_never_finishes_a_row_on():
         RowSearch(after=1000)
 
 
+def pacing_walk(steps: int, hold: bool) -> list[tuple[int, int]]:
+    """On the 1-degree grid, a policy that paces a column: UP (5 logits) until pitch +30, then DOWN (5) until -30,
+    and so on, one RIGHT at each end, with STOP always its second choice (3 logits). Row search with stride 10 from
+    the first step, no budget. Returns the (pitch, yaw) after each step."""
+    guard = RevisitPenalty(1, 1.0, rows=RowSearch(stride=10, hold=hold))
+    idx, pitch, yaw, going_up, poses = torch.tensor([0]), 0, 0, True, []
+    for _ in range(steps):
+        logits = torch.tensor([[0.0, 0.0, 0.0, 0.0, 3.0]])
+        if going_up and pitch >= 30 or not going_up and pitch <= -30:
+            going_up = not going_up
+            logits[0, RIGHT] = 5.0
+        else:
+            logits[0, UP if going_up else DOWN] = 5.0
+        a = int(guard.adjust(idx, pose_view(pitch, yaw)[None], logits).argmax(dim=-1))
+        guard.moved(idx, torch.tensor([a]))
+        assert a != STOP  # STOP is never the argmax, with or without the hold
+        pitch += {UP: 1, DOWN: -1}.get(a, 0)
+        yaw += {RIGHT: 1, LEFT: -1}.get(a, 0)
+        poses.append((pitch, yaw))
+    return poses
+
+
+def test_row_hold_keeps_a_column_pacer_within_half_a_stride_of_its_row():
+    """A policy that paces pitch -30..+30 leaves the start row (row 0 of a stride-10 search) at once; with the hold
+    it stays within 5 steps of it (half the stride) and, barred from its pitch move at the band's edge, takes
+    another move (never STOP, its second choice) instead, so it moves along the row."""
+    free = pacing_walk(200, hold=False)
+    assert max(p for p, _ in free) == 30 and min(p for p, _ in free) == -30
+    held = pacing_walk(200, hold=True)
+    assert max(p for p, _ in held) == 5 and min(p for p, _ in held) >= -5
+    assert len({y for _, y in held}) > len({y for _, y in free})  # barred pitch moves became yaw moves
+    with pytest.raises(ValueError, match="need a row search"):
+        RowSearch(hold=True)
+
+
 def test_stop_prob_stops_on_the_policys_own_stop_probability():
     """A policy whose output is fixed at P = (0.1, 0.1, 0.1, 0.4, 0.3) for (UP, DOWN, LEFT, RIGHT, STOP): the
     argmax turns RIGHT; with ``stop_prob`` 0.29 the agent stops (also with the search memory on, which would

@@ -43,7 +43,10 @@ finishes in time are untouched. ``budget = b`` (steps): once the search has chos
 it starts), it moves on to the next after ``b`` steps even if the band is not looked around. A learned agent unsure
 which row to search next can zigzag up and down, one yaw column per pass, or pace between two rows it has looked
 around (each of them a row of visited cells that costs ``penalty`` to step into): every cell it visits is new, no
-band ever fills, and without a budget the search never takes it anywhere else.
+band ever fills, and without a budget the search never takes it anywhere else. ``hold``: a policy that paces a
+column walks off a row the moment the search has brought it there; with the hold a pitch move more than ``s // 2``
+steps from the current row is barred until the search moves on (the best move left takes its logit, so ``STOP``
+never wins by it), and the agent moves along the row instead.
 
 Visit counts live in one ``(N, 2 * max_pitch_steps + 1, 360 / step_deg)`` int16 tensor (260 KB per slot at
 1 degree) on the policy's device, beside a running per-column count of the seen cells below each row (the same
@@ -109,6 +112,10 @@ class RowSearch:
         after: the step of an episode from which the row search acts (0: from its first step).
         budget: steps at one search row after which the search moves on though the row is not looked around
             (0: no limit).
+        hold: once on its search row (the start row first), the agent may not move more than ``stride // 2``
+            steps above or below it until the search moves on: a policy that paces a column walks off a row as soon
+            as it is brought there; every pitch is within ``stride // 2`` of some row, so a target the row shows
+            can still be reached. Only from ``after`` on, like the rest of the search.
 
     Raises:
         ValueError: a negative setting, or ``after`` / ``budget`` without a row search (``stride`` 0).
@@ -117,21 +124,23 @@ class RowSearch:
     stride: int = 0
     after: int = 0
     budget: int = 0
+    hold: bool = False
 
     def __post_init__(self) -> None:
         for name in ("stride", "after", "budget"):  # stored as ints once, so the hot path reads them as they are
             object.__setattr__(self, name, int(getattr(self, name)))
+        object.__setattr__(self, "hold", bool(self.hold))
         if self.stride < 0 or self.after < 0 or self.budget < 0:
             raise ValueError(f"row search: need stride, after and budget >= 0 steps, got stride={self.stride}, "
                              f"after={self.after}, budget={self.budget}")
-        if (self.after or self.budget) and not self.stride:
-            raise ValueError(f"row search: after={self.after} and budget={self.budget} steps need a row search "
-                             f"(agent.revisit_row_stride > 0), got stride=0")
+        if (self.after or self.budget or self.hold) and not self.stride:
+            raise ValueError(f"row search: after={self.after}, budget={self.budget} steps and hold={self.hold} need a "
+                             f"row search (agent.revisit_row_stride > 0), got stride=0")
 
     @classmethod
     def of(cls, agent: Any) -> "RowSearch":
-        """The settings of a learned agent's typed config (``revisit_row_stride``, ``_after``, ``_budget``)."""
-        return cls(agent.revisit_row_stride, agent.revisit_row_after, agent.revisit_row_budget)
+        """The settings of a learned agent's typed config (``revisit_row_stride``, ``_after``, ``_budget``, ``_hold``)."""
+        return cls(agent.revisit_row_stride, agent.revisit_row_after, agent.revisit_row_budget, agent.revisit_row_hold)
 
 
 def make_revisit_penalty(
@@ -401,7 +410,24 @@ class RevisitPenalty:
         toward = torch.where(target > pitch, 0, 1)  # UP raises the pitch offset, DOWN lowers it
         forced = torch.full_like(out[:, :4], float("-inf"))
         forced.scatter_(1, toward[:, None], 0.0)
+        if self.rows.hold:
+            self._hold_row(live & ~seek, pitch, target, out)
         out[:, :4] = torch.where(seek[:, None], forced, out[:, :4])
+
+    def _hold_row(self, held: torch.Tensor, pitch: torch.Tensor, target: torch.Tensor, out: torch.Tensor) -> None:
+        """``RowSearch.hold``: for the slots ``held`` (K,), a pitch move more than ``stride // 2`` steps from the
+        row ``target`` (K,) is barred. Where the policy's best move was barred, the best move left gets that move's
+        logit, so barring never lets ``STOP`` win. Edits ``out`` (K, 5) in place."""
+        half = self.rows.stride // 2
+        barred = torch.stack([held & (pitch + 1 > target + half), held & (pitch - 1 < target - half)], dim=1)  # UP, DOWN
+        moves = out[:, :4]
+        top = moves.max(dim=1).values
+        left = moves.clone()
+        left[:, :2] = left[:, :2].masked_fill(barred, float("-inf"))
+        best = left.max(dim=1)
+        lift = best.values < top  # the barred move was the best
+        left.scatter_(1, best.indices[:, None], torch.where(lift, top, best.values)[:, None])
+        out[:, :4] = left
 
     def _row_offset(self, k: torch.Tensor) -> torch.Tensor:
         """Pitch offset (steps from the start row) of search row ``k``: 0, +s, -s, +2s, -2s, ... (``s`` the stride)."""
