@@ -118,7 +118,7 @@ class RowSearch:
             can still be reached. Only from ``after`` on, like the rest of the search.
 
     Raises:
-        ValueError: a negative setting, or ``after`` / ``budget`` without a row search (``stride`` 0).
+        ValueError: a negative setting, or ``after`` / ``budget`` / ``hold`` without a row search (``stride`` 0).
     """
 
     stride: int = 0
