@@ -74,6 +74,16 @@ def test_exit_statuses_are_those_of_python(runner, tmp_path):
     assert out.strip() == "bad input: x"
 
 
+def test_a_command_ends_as_python_ends(runner, tmp_path):
+    """Threads joined and ``atexit`` handlers run (multiprocessing and joblib clean up in them)."""
+    script = _script(tmp_path, "ending.py", (
+        "import atexit, threading, time\n"
+        "atexit.register(print, 'atexit ran')\n"
+        "threading.Thread(target=lambda: (time.sleep(0.5), print('thread done'))).start()\n"
+        "print('main done')\n"))
+    assert runner.run([script], cwd=tmp_path, env={}, timeout=60) == (0, "main done\nthread done\natexit ran\n")
+
+
 def test_nothing_one_command_does_reaches_the_next(runner, tmp_path):
     set_it = _script(tmp_path, "set.py", "import json, os\njson.MARK = 1\nos.environ['LEFT'] = '1'\nprint('set')\n")
     read_it = _script(tmp_path, "read.py", "import json, os\nprint(hasattr(json, 'MARK'), 'LEFT' in os.environ)\n")
