@@ -274,6 +274,10 @@ class PPOAgentConfig:
     revisit_near_age: int = 1
     """With ``revisit_near_rows``: steps since a near cell's last visit before that visit counts (1: every earlier
     visit; larger ages leave the recent path free, which at FoV 90 gave back all of the gain on hard episodes)."""
+    revisit_near_since: int = 0
+    """With ``revisit_near_rows``: visits made before this step of an episode never count as near ones (0: all count).
+    The path out of the first steps stays free to walk back along one row off it (the policy correcting its first
+    guess of the side); a search going round again later pays."""
     memory_inputs: bool = False
     """The network reads its search memory (needs ``revisit_penalty > 0`` and 1-degree actions): per step, whether it
     has looked at 90% of a full turn of yaw cells near its current row, how much of a turn, whether the rows above / below have been, and its pitch
@@ -395,6 +399,7 @@ class PPOAgentConfig:
         check(self.revisit_near_rows >= 0, "agent.revisit_near_rows", self.revisit_near_rows, "0 (off) or a number of rows")
         check(self.revisit_near_penalty > 0, "agent.revisit_near_penalty", self.revisit_near_penalty, "a positive number of logit units")
         check(self.revisit_near_age >= 1, "agent.revisit_near_age", self.revisit_near_age, "a number of steps >= 1")
+        check(self.revisit_near_since >= 0, "agent.revisit_near_since", self.revisit_near_since, "0 or a number of steps")
         check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
         check(self.refine_model is None or self.refine_stop, "agent.refine_model", self.refine_model,
               "null, or a stop-offset file with agent.refine_stop=true")

@@ -119,6 +119,7 @@ def test_robust_polish_continues_stage_2_as_the_card_runs_it() -> None:
          "agent.stop_min_prob=0.5: expected at most agent.stop_prob=0.3"),
         ("eval", ["agent=ppo", "agent.revisit_near_rows=-2"], "agent.revisit_near_rows=-2: expected 0 (off) or a number of rows"),
         ("eval", ["agent=ppo", "agent.revisit_near_age=0"], "agent.revisit_near_age=0: expected a number of steps >= 1"),
+        ("eval", ["agent=ppo", "agent.revisit_near_since=-1"], "agent.revisit_near_since=-1: expected 0 or a number of steps"),
         ("eval", ["agent=ppo", "agent.mirror_steps=-1"], "agent.mirror_steps=-1: expected 0 (off) or a number of policy steps"),
         ("eval", ["agent=ppo", "agent.revisit_row_after=-5"], "agent.revisit_row_after=-5: expected 0 or a number of steps"),
         ("eval", ["agent=ppo", "agent.revisit_row_stride=30", "agent.revisit_row_budget=-1"],

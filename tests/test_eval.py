@@ -493,10 +493,11 @@ def test_checkpoint_eval_takes_the_revisit_penalty_from_the_run_or_the_command_l
     cfg = apply_checkpoint_config(cfg, ["agent.revisit_row_stride=45"])
     assert build_agent(cfg, 2, torch.device("cpu"))[0].revisits.rows.stride == 45  # the command line wins
     assert agent_for(ckpt, [], None).revisits.near_rows == 0  # a run without the key: no near visits
-    near = ["agent.revisit_near_rows=16", "agent.revisit_near_penalty=2.5", "agent.revisit_near_age=7"]
+    near = ["agent.revisit_near_rows=16", "agent.revisit_near_penalty=2.5", "agent.revisit_near_age=7",
+            "agent.revisit_near_since=50"]
     revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *near), near), 2,
                            torch.device("cpu"))[0].revisits
-    assert (revisits.near.rows, revisits.near.penalty, revisits.near.age) == (16, 2.5, 7)
+    assert (revisits.near.rows, revisits.near.penalty, revisits.near.age, revisits.near.since) == (16, 2.5, 7, 50)
     rows = ["agent.revisit_row_after=1000", "agent.revisit_row_budget=720"]  # with the run's stride 30
     revisits = build_agent(apply_checkpoint_config(_eval_cfg("agent=ppo", f"checkpoint={ckpt}", *rows), rows), 2,
                            torch.device("cpu"))[0].revisits

@@ -400,7 +400,14 @@ def test_near_visits_are_counted_beside_a_moves_destination():
     resumed = RevisitPenalty(1, 2.0, near=NearVisits(2, 0.5, 5))
     resumed.load_state_dict(aged.state_dict())  # the resume state keeps the ages
     assert resumed.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.5, 2.0]]
-    for bad in ({"rows": -1, "penalty": 1.0}, {"rows": 2}, {"rows": 2, "penalty": 1.0, "age": 0}):
+    # near since 5: only visits made at step 5 or later are near ones: (1, 3) at 5, (2, 3) at 6, (2, 2) at 7. DOWN's
+    # yaw 2 of row 0 (step 3) and LEFT's yaw 1 of row 0 (step 2) no longer count; RIGHT's (1, 3) does (since 6: not)
+    for since, right in ((5, 2.5), (6, 2.0)):
+        recent = RevisitPenalty(1, 2.0, near=NearVisits(2, 0.5, 1, since=since))
+        walk_guard(recent, 0, moves)
+        assert recent.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.0, right]]
+    for bad in ({"rows": -1, "penalty": 1.0}, {"rows": 2}, {"rows": 2, "penalty": 1.0, "age": 0},
+                {"rows": 2, "penalty": 1.0, "since": -1}):
         with pytest.raises(ValueError, match="near visits"):
             RevisitPenalty(1, 1.0, near=NearVisits(**bad))
     # a resume state saved without near visits has no ages to restore: refused, not silently aged

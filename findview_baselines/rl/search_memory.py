@@ -24,7 +24,9 @@ that looks like its target does this for thousands of steps. With ``rows = r``, 
 the most visited cell near its destination: for ``LEFT`` / ``RIGHT`` the cells of the destination's column within
 ``r`` rows of it, for ``UP`` / ``DOWN`` those of its column 1 to ``r`` rows beyond it in the move's direction. Only
 visits at least ``age`` steps old count (1: every earlier visit; a larger age leaves recent ones free, such as
-the staircase of pitch and yaw moves onto a target just passed). A penalty below the memory's own keeps it a nudge:
+the staircase of pitch and yaw moves onto a target just passed); with ``since = s`` the visits of an episode's first
+``s - 1`` steps never count as near ones (a turn back over that path, one row off it, is the policy correcting its
+first guess of the side, not a search going round again). A penalty below the memory's own keeps it a nudge:
 going back over ground a few rows off the old path costs less than an exact revisit, and a move the policy prefers by
 a wide margin (its last moves onto a target it sees) is still taken.
 
@@ -86,21 +88,29 @@ class NearVisits:
         rows: rows (1-degree steps) of a move's near cells.
         penalty: logit units per visit of the most visited near cell.
         age: steps since a near cell's last visit before that visit counts.
+        since: visits made before this step of an episode never count as near ones (0: every visit counts). The
+            path out of an episode's first steps stays free to walk back along, one row off it: a policy that
+            corrects its first guess of the side (a medium target seen at the edge of the view after a few steps
+            the wrong way) turns back over it; a search that goes round again later is charged.
     """
 
     rows: int = 0
     penalty: float = 0.0
     age: int = 1
+    since: int = 0
 
     def __post_init__(self) -> None:
-        if int(self.rows) < 0 or (int(self.rows) > 0 and not float(self.penalty) > 0) or int(self.age) < 1:
-            raise ValueError(f"near visits: need rows >= 0, penalty > 0 logit units when rows > 0, age >= 1 step; "
-                             f"got rows={self.rows}, penalty={self.penalty}, age={self.age}")
+        if (int(self.rows) < 0 or (int(self.rows) > 0 and not float(self.penalty) > 0) or int(self.age) < 1
+                or int(self.since) < 0):
+            raise ValueError(f"near visits: need rows >= 0, penalty > 0 logit units when rows > 0, age >= 1 step, "
+                             f"since >= 0 steps; got rows={self.rows}, penalty={self.penalty}, age={self.age}, "
+                             f"since={self.since}")
 
     @classmethod
     def of(cls, agent: Any) -> "NearVisits":
-        """The settings of a learned agent's typed config (``revisit_near_rows``, ``_penalty``, ``_age``)."""
-        return cls(int(agent.revisit_near_rows), float(agent.revisit_near_penalty), int(agent.revisit_near_age))
+        """The settings of a learned agent's typed config (``revisit_near_rows``, ``_penalty``, ``_age``, ``_since``)."""
+        return cls(int(agent.revisit_near_rows), float(agent.revisit_near_penalty), int(agent.revisit_near_age),
+                   int(agent.revisit_near_since))
 
 
 @dataclass(frozen=True)
@@ -329,6 +339,8 @@ class RevisitPenalty:
             inside = (rows >= 0) & (rows < self.visits.shape[1])
             cells = (idx[:, None, None], rows.clamp(0, self.visits.shape[1] - 1), y[:, :, None])
             old = self.clock[idx, None, None] - self.last_visit[cells] >= self.near.age
+            if self.near.since:
+                old = old & (self.last_visit[cells] >= self.near.since)
             near = torch.where(old & inside, self.visits[cells], 0).amax(dim=-1)
             out = out + self.near.penalty * near.to(torch.float32)
         return out
