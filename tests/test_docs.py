@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -176,3 +177,13 @@ def test_every_documented_command_runs(tmp_path):
 def _digests(folder: Path) -> dict[str, str]:
     """SHA-256 of every file in ``folder``, by name."""
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def test_a_command_the_fork_cannot_parse_runs_under_bash(tmp_path):
+    """Unbalanced quotes: the checker does not crash while deciding whether to fork; bash reports the command."""
+    if not hasattr(os, "fork"):
+        pytest.skip("needs fork (POSIX)")
+    command = check_docs.extract("```\npython tools/eval.py agent='sift\n```\n", "x.md")[0]
+    with check_docs.WarmPython(preload=("json",)) as warm:
+        result = check_docs.run_one(command, tmp_path, False, 60, warm)
+    assert result.status == "FAIL" and "bash" in result.note

@@ -473,7 +473,10 @@ def run_one(c: DocCommand, cwd: Path, ci: bool, timeout: float, warm: Optional[W
     env["PATH"] = os.path.dirname(sys.executable) + os.pathsep + env.get("PATH", "")
     env["PYTHONUNBUFFERED"] = "1"
     t0 = time.monotonic()
-    words = shlex.split(ran) if warm is not None and not SHELL_SYNTAX.search(ran) else []
+    try:
+        words = shlex.split(ran) if warm is not None and not SHELL_SYNTAX.search(ran) else []
+    except ValueError:  # unbalanced quotes: bash reports them
+        words = []
     if words and forkable(words):
         while words[0] != "python":  # VAR=value assignments (none of them read at load time: forkable)
             key, value = words.pop(0).split("=", 1)
