@@ -28,7 +28,6 @@ import subprocess
 import sys
 import tempfile
 import threading
-import time
 from pathlib import Path
 from typing import Optional
 
@@ -93,14 +92,13 @@ class WarmPython:
             self._proc.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd), "env": env, "output": out}) + "\n")
             self._proc.stdin.flush()
             pid = self._read(timeout=60)["pid"]
-            deadline = time.monotonic() + timeout
             reply = self._read(timeout=timeout)
             if not reply:  # past the timeout: kill its process group, then collect the server's reply
                 try:
                     os.killpg(pid, signal.SIGKILL)
                 except ProcessLookupError:
                     pass
-                self._read(timeout=max(60.0, deadline - time.monotonic()))
+                self._read(timeout=60)
                 return None, Path(out).read_text(errors="replace")
             return int(reply["returncode"]), Path(out).read_text(errors="replace")
         finally:
