@@ -278,6 +278,11 @@ class PPOAgentConfig:
     """With ``revisit_near_rows``: visits made before this step of an episode never count as near ones (0: all count).
     The path out of the first steps stays free to walk back along one row off it (the policy correcting its first
     guess of the side); a search going round again later pays."""
+    revisit_near_until: Optional[float] = None
+    """With ``revisit_near_rows`` and ``refine_min_near`` (a stop-offset net with the near output): once the net finds
+    an episode's view near its target with at least this probability (at a pose the agent checks: a STOP, a new most
+    stop-like pose, a half-sure STOP), that episode's near visits stop counting. A search hovering by a target it cannot
+    yet stop on (a corrupted one) is not pushed away from it. null = they count to the end."""
     memory_inputs: bool = False
     """The network reads its search memory (needs ``revisit_penalty > 0`` and 1-degree actions): per step, whether it
     has looked at 90% of a full turn of yaw cells near its current row, how much of a turn, whether the rows above / below have been, and its pitch
@@ -400,6 +405,9 @@ class PPOAgentConfig:
         check(self.revisit_near_penalty > 0, "agent.revisit_near_penalty", self.revisit_near_penalty, "a positive number of logit units")
         check(self.revisit_near_age >= 1, "agent.revisit_near_age", self.revisit_near_age, "a number of steps >= 1")
         check(self.revisit_near_since >= 0, "agent.revisit_near_since", self.revisit_near_since, "0 or a number of steps")
+        check(self.revisit_near_until is None or (0 < self.revisit_near_until < 1 and self.refine_min_near is not None),
+              "agent.revisit_near_until", self.revisit_near_until,
+              "null, or a probability in (0, 1) with agent.refine_min_near (the stop-offset net's near check)")
         check(self.refine_moves >= 1, "agent.refine_moves", self.refine_moves, "a positive number of moves")
         check(self.refine_model is None or self.refine_stop, "agent.refine_model", self.refine_model,
               "null, or a stop-offset file with agent.refine_stop=true")

@@ -331,6 +331,27 @@ def test_agent_stops_on_a_half_sure_view_the_net_finds_near() -> None:
         PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_min_near=0.9)
     PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, stop_near_prob=0.3, stop_near_min_near=0.99)
 
+    # revisit_near_until: the near probabilities the stop check measures end a slot's near visits at 0.75 and above
+    # (slot 0's 0.78; not slot 2's 0.71, nor slot 1's 0.20, which is never measured: STOP below 0.3 everywhere)
+    from findview_baselines.rl.search_memory import NearVisits
+
+    def found(until: float, **kw) -> list[bool]:
+        agent = PPOAgent(policy, 3, refiner=shade_net(3), fov=FOV, revisit_penalty=16.0,
+                         revisit_near=NearVisits(4, 2.0, until=until), **kw)
+        agent.reset([0, 1, 2], [Episode(f"e{i}", "x.jpg", 0, 0, 0, 10, difficulty="easy", seed=i) for i in range(3)])
+        shades = torch.tensor([200, 50, 180], dtype=torch.uint8)[:, None, None, None].expand(3, 3, 160, 160)
+        agent.act({"view": shades.clone(), "target": shades.clone()})
+        return agent.revisits.near_found.tolist()
+
+    assert found(0.75, stop_near_prob=0.29, stop_near_min_near=0.99) == [True, False, False]
+    assert found(0.6, stop_near_prob=0.29, stop_near_min_near=0.99) == [True, False, True]
+    assert found(0.6) == [False, False, False]  # no stop-like pose, nothing measured
+    with pytest.raises(ValueError, match="revisit_near.until=0.6 .*min_near"):
+        PPOAgent(policy, 1, fov=FOV, revisit_penalty=16.0, revisit_near=NearVisits(4, 2.0, until=0.6))
+    with pytest.raises(ValueError, match="agent.revisit_near_until=0.6: expected .*agent.refine_min_near"):
+        PPOAgentConfig(revisit_near_until=0.6)
+    PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.5, revisit_near_until=0.6)
+
 
 def test_files_round_trip_and_bad_files_are_named(trained, tmp_path) -> None:
     net, val = trained

@@ -138,7 +138,8 @@ class PPOAgent(Agent):
             after a turn move to the next search row, ``stride`` 1-step moves up or down, alternately, growing;
             from step ``after`` on, at most ``budget`` steps per row; the default: off).
         revisit_near: with the memory on, its near visits (:class:`~findview_baselines.rl.search_memory.NearVisits`;
-            the default: off).
+            the default: off). Its ``until`` needs a ``refiner`` with ``min_near``: every near probability the
+            stop check measures (:meth:`_refuse_far`) at or above it ends that episode's near visits.
         refiner: a :class:`~findview_baselines.agents.stop_refine.StopRefiner` for the final refinement of the
             policy's stops (``None``: the policy's stops stand).
         stop_prob: STOP whenever the policy gives STOP at least this probability, even when a move has more
@@ -247,6 +248,11 @@ class PPOAgent(Agent):
         self._rngs: list[np.random.Generator] = [np.random.default_rng([self.seed, i]) for i in range(self.num_envs)]
         self.revisits = make_revisit_penalty(self.num_envs, self.device, revisit_penalty, revisit_rows, revisit_near)
         self.refiner = refiner
+        if float(revisit_near.until) and (refiner is None or refiner.min_near is None or not revisit_near.rows):
+            raise ValueError(f"revisit_near.until={revisit_near.until} ends an episode's near visits once the "
+                             f"stop-offset net finds its view near: it needs near visits (rows > 0, got "
+                             f"{revisit_near.rows}) and a refiner with min_near, got "
+                             f"{'no refiner' if refiner is None else f'min_near={refiner.min_near}'}")
         self.memory_band = 0  # rows of the search memory's band, when the network reads the memory
         if getattr(policy, "memory_inputs", 0):
             if self.revisits is None or fov is None:
@@ -569,6 +575,8 @@ class PPOAgent(Agent):
         at = idx[rows]
         near = self.refiner.near_prob(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
         far = near < self.refiner.min_near
+        if self.revisits is not None and self.revisits.near.until:  # found near: the episode's near visits end
+            self.revisits.found_near(at[near >= self.revisits.near.until])
         if half_sure is not None:  # a half-sure view found near: STOP there
             sure = half_sure[rows] & (near >= self.stop_near_min_near)
             a_t = a_t.index_put((rows,), torch.where(sure, STOP, a_t[rows]))

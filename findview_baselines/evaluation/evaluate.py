@@ -55,7 +55,8 @@ EpisodeToolConfig = Union[EvalConfig, RenderEpisodeConfig, RenderCorruptionsConf
 _MODEL_KEYS = ("variant", "hidden_size", "fine_shifts", "fine_scales")
 #: the learned agent's search-memory settings (a training run records the ones it validated with)
 _SEARCH_KEYS = ("revisit_penalty", "revisit_row_stride", "revisit_row_after", "revisit_row_budget", "revisit_row_hold",
-                "revisit_near_rows", "revisit_near_penalty", "revisit_near_age", "revisit_near_since")
+                "revisit_near_rows", "revisit_near_penalty", "revisit_near_age", "revisit_near_since",
+                "revisit_near_until")
 #: the learned agent's settings that change what its network reads, which a training run trains with
 _TRAINED_KEYS = ("wide_match_min_peak",)
 

@@ -26,7 +26,10 @@ the most visited cell near its destination: for ``LEFT`` / ``RIGHT`` the cells o
 visits at least ``age`` steps old count (1: every earlier visit; a larger age leaves recent ones free, such as
 the staircase of pitch and yaw moves onto a target just passed); with ``since = s`` the visits of an episode's first
 ``s - 1`` steps never count as near ones (a turn back over that path, one row off it, is the policy correcting its
-first guess of the side, not a search going round again). A penalty below the memory's own keeps it a nudge:
+first guess of the side, not a search going round again); with ``until = u`` an episode's near visits stop counting
+once its agent finds the view near the target with probability at least ``u`` (:meth:`RevisitPenalty.found_near`,
+called by an agent with a stop-offset net): a search hovering by a target it cannot yet stop on is not pushed away
+from it. A penalty below the memory's own keeps it a nudge:
 going back over ground a few rows off the old path costs less than an exact revisit, and a move the policy prefers by
 a wide margin (its last moves onto a target it sees) is still taken.
 
@@ -92,25 +95,30 @@ class NearVisits:
             path out of an episode's first steps stays free to walk back along, one row off it: a policy that
             corrects its first guess of the side (a medium target seen at the edge of the view after a few steps
             the wrong way) turns back over it; a search that goes round again later is charged.
+        until: an agent whose stop-offset net finds an episode's view near its target with at least this probability
+            (in (0, 1)) stops counting that episode's near visits (0: they count to the end). The memory only keeps
+            the flag (:meth:`RevisitPenalty.found_near`); the agent measures.
     """
 
     rows: int = 0
     penalty: float = 0.0
     age: int = 1
     since: int = 0
+    until: float = 0.0
 
     def __post_init__(self) -> None:
         if (int(self.rows) < 0 or (int(self.rows) > 0 and not float(self.penalty) > 0) or int(self.age) < 1
-                or int(self.since) < 0):
+                or int(self.since) < 0 or not 0.0 <= float(self.until) < 1.0):
             raise ValueError(f"near visits: need rows >= 0, penalty > 0 logit units when rows > 0, age >= 1 step, "
-                             f"since >= 0 steps; got rows={self.rows}, penalty={self.penalty}, age={self.age}, "
-                             f"since={self.since}")
+                             f"since >= 0 steps, 0 <= until < 1 (a probability, 0 = off); got rows={self.rows}, "
+                             f"penalty={self.penalty}, age={self.age}, since={self.since}, until={self.until}")
 
     @classmethod
     def of(cls, agent: Any) -> "NearVisits":
-        """The settings of a learned agent's typed config (``revisit_near_rows``, ``_penalty``, ``_age``, ``_since``)."""
+        """The settings of a learned agent's typed config (``revisit_near_rows``, ``_penalty``, ``_age``, ``_since``,
+        ``_until``; a null ``_until`` is 0, off)."""
         return cls(int(agent.revisit_near_rows), float(agent.revisit_near_penalty), int(agent.revisit_near_age),
-                   int(agent.revisit_near_since))
+                   int(agent.revisit_near_since), float(agent.revisit_near_until or 0.0))
 
 
 @dataclass(frozen=True)
@@ -225,6 +233,7 @@ class RevisitPenalty:
         # the step of each cell's last visit and each slot's steps since its reset (kept with near visits only)
         self.last_visit = torch.zeros(self.visits.shape if r else (n, 1, 1), dtype=torch.int32, device=self.device)
         self.clock = torch.zeros(n, dtype=torch.int32, device=self.device)
+        self.near_found = torch.zeros(n, dtype=torch.bool, device=self.device)  # near visits no longer count (until)
         # row search (rows.stride > 0): after a turn, move to the next search row, start + s, - s, + 2s, - 2s, ...
         self.rows = rows
         self.cover_cells = max(1, int(round(float(row_cover) * self.yaw_cells)))
@@ -244,6 +253,7 @@ class RevisitPenalty:
         self.visits[ids] = 0
         self.last_visit[ids] = 0
         self.clock[ids] = 0
+        self.near_found[ids] = False
         self.seen_below[ids] = 0
         self.pitch[ids] = 0
         self.yaw[ids] = 0
@@ -341,9 +351,17 @@ class RevisitPenalty:
             old = self.clock[idx, None, None] - self.last_visit[cells] >= self.near.age
             if self.near.since:
                 old = old & (self.last_visit[cells] >= self.near.since)
+            if self.near.until:
+                old = old & ~self.near_found[idx, None, None]
             near = torch.where(old & inside, self.visits[cells], 0).amax(dim=-1)
             out = out + self.near.penalty * near.to(torch.float32)
         return out
+
+    def found_near(self, env_ids: torch.Tensor) -> None:
+        """Slots ``env_ids`` (long tensor) have been found near their target (``near.until``): their near visits
+        no longer count until their next reset. A no-op without ``near.until``."""
+        if self.near.until:
+            self.near_found[env_ids.to(self.device)] = True
 
     def memory_features(self, idx: torch.Tensor, band: int) -> torch.Tensor:
         """What the memory says about the search so far, as ``(K, MEMORY_FEATURES)`` float32 inputs for a policy.
@@ -484,6 +502,7 @@ class RevisitPenalty:
                                 self.row_started.long(), self.row_reach_hi, self.row_reach_lo]).cpu(),
             "last_visit": self.last_visit.cpu().clone(),
             "clock": self.clock.cpu().clone(),
+            "near_found": self.near_found.cpu().clone(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -515,6 +534,8 @@ class RevisitPenalty:
         self.last_view = None if last is None else last.to(self.device).clone()
         if state.get("clock") is not None:  # the steps since each reset (near-visit ages, the row search's start)
             self.clock.copy_(state["clock"])
+        self.near_found.copy_(state["near_found"] if state.get("near_found") is not None  # saved before the flag: none
+                              else torch.zeros_like(self.near_found))
         if self.near_rows:  # the ages of the restored visits: a state saved without near visits has none
             saved = state.get("last_visit")
             if saved is None or tuple(saved.shape) != tuple(self.last_visit.shape):
