@@ -406,12 +406,13 @@ def test_near_visits_are_counted_beside_a_moves_destination():
         recent = RevisitPenalty(1, 2.0, near=NearVisits(2, 0.5, 1, since=since))
         walk_guard(recent, 0, moves)
         assert recent.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.0, 0.0, right]]
-    # until 0.5: the flag the agent sets once its net finds the view near. Set on slot 1 of two, that slot pays its
-    # exact visits only (RIGHT's 2.0), slot 0 its near ones too; a reset clears the flag, a resume keeps it
+    # until 0.5: the flag the agent sets once its net finds the view near. Measured 0.5 on slot 1 of two (at the bar)
+    # and 0.49 on slot 0: slot 1 pays its exact visits only (RIGHT's 2.0), slot 0 its near ones too; a reset clears
+    # the flag, a resume keeps it
     found = RevisitPenalty(2, 2.0, near=NearVisits(2, 0.5, 1, until=0.5))
     walk_guard(found, 0, moves)
     walk_guard(found, 1, moves)
-    found.found_near(torch.tensor([1]))
+    found.found_near(torch.tensor([0, 1]), torch.tensor([0.49, 0.5]))
     assert found.move_penalties(torch.tensor([0, 1])).tolist() == [[0.0, 0.5, 0.5, 2.5], [0.0, 0.0, 0.0, 2.0]]
     kept = RevisitPenalty(2, 2.0, near=NearVisits(2, 0.5, 1, until=0.5))
     kept.load_state_dict(found.state_dict())
@@ -421,7 +422,7 @@ def test_near_visits_are_counted_beside_a_moves_destination():
     assert found.move_penalties(torch.tensor([1])).tolist() == [[0.0, 0.5, 0.5, 2.5]]
     unset = RevisitPenalty(1, 2.0, near=NearVisits(2, 0.5, 1))  # without until the flag is never set
     walk_guard(unset, 0, moves)
-    unset.found_near(torch.tensor([0]))
+    unset.found_near(torch.tensor([0]), torch.tensor([0.9]))
     assert unset.move_penalties(torch.tensor([0])).tolist() == [[0.0, 0.5, 0.5, 2.5]]
     for bad in ({"rows": -1, "penalty": 1.0}, {"rows": 2}, {"rows": 2, "penalty": 1.0, "age": 0},
                 {"rows": 2, "penalty": 1.0, "since": -1}, {"rows": 2, "penalty": 1.0, "until": 1.0},

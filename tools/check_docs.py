@@ -56,7 +56,7 @@ from pathlib import Path
 from typing import Callable, Optional, Union
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling module, also when loaded by file path
-from warm_python import WarmPython, forkable  # noqa: E402
+from warm_python import WarmPython, fork_args  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DOCS = ("README.md", "docs/*.md", "pretrained/README.md", "benchmarks/RESULTS.md")
@@ -474,14 +474,12 @@ def run_one(c: DocCommand, cwd: Path, ci: bool, timeout: float, warm: Optional[W
     env["PYTHONUNBUFFERED"] = "1"
     t0 = time.monotonic()
     try:
-        words = shlex.split(ran) if warm is not None and not SHELL_SYNTAX.search(ran) else []
+        fork = fork_args(shlex.split(ran)) if warm is not None and not SHELL_SYNTAX.search(ran) else None
     except ValueError:  # unbalanced quotes: bash reports them
-        words = []
-    if words and forkable(words):
-        while words[0] != "python":  # VAR=value assignments (none of them read at load time: forkable)
-            key, value = words.pop(0).split("=", 1)
-            env[key] = value
-        returncode, output = warm.run(words[1:], cwd=cwd, env=env, timeout=timeout)
+        fork = None
+    if fork is not None:
+        assigned, argv = fork  # VAR=value assignments, none of them read at load time
+        returncode, output = warm.run(argv, cwd=cwd, env={**env, **assigned}, timeout=timeout)
         if returncode is None:
             return Result(c, "FAIL", time.monotonic() - t0, f"timeout after {timeout:.0f} s", ran)
     else:

@@ -39,16 +39,24 @@ PRELOAD = ("findview", "numpy", "cv2", "torch", "kornia", "hydra", "omegaconf", 
 LOAD_TIME_ENV = re.compile(r"^(OMP_|OPENBLAS_|MKL_|KMP_|PYTHON|LD_|CUDA_|TORCH_)")
 
 
-def forkable(words: list[str]) -> bool:
-    """Whether the command ``words`` (shell words, ``VAR=value`` assignments first) is ``python <file>.py ...``
-    with no assignment to a load-time variable (:data:`LOAD_TIME_ENV`), so :class:`WarmPython` can run it."""
+def fork_args(words: list[str]) -> Optional[tuple[dict[str, str], list[str]]]:
+    """For the command ``words`` (shell words, ``VAR=value`` assignments first) of the form ``python <file>.py ...``
+    with no assignment to a load-time variable (:data:`LOAD_TIME_ENV`): its assignments and the arguments after
+    ``python`` (what :meth:`WarmPython.run` takes); ``None`` for any other command."""
     i = 0
     while i < len(words) and re.fullmatch(r"[A-Za-z_]\w*=.*", words[i]):
         if LOAD_TIME_ENV.match(words[i]):
-            return False
+            return None
         i += 1
     rest = words[i:]
-    return len(rest) >= 2 and rest[0] == "python" and rest[1].endswith(".py") and not rest[1].startswith("-")
+    if not (len(rest) >= 2 and rest[0] == "python" and rest[1].endswith(".py") and not rest[1].startswith("-")):
+        return None
+    return dict(w.split("=", 1) for w in words[:i]), rest[1:]
+
+
+def forkable(words: list[str]) -> bool:
+    """Whether :class:`WarmPython` can run the command ``words`` (:func:`fork_args`)."""
+    return fork_args(words) is not None
 
 
 class WarmPython:

@@ -575,8 +575,8 @@ class PPOAgent(Agent):
         at = idx[rows]
         near = self.refiner.near_prob(rendered[0].to(self.device)[at], rendered[1].to(self.device)[at])
         far = near < self.refiner.min_near
-        if self.revisits is not None and self.revisits.near.until:  # found near: the episode's near visits end
-            self.revisits.found_near(at[near >= self.revisits.near.until])
+        if self.revisits is not None:  # found near (near.until): the episode's near visits end
+            self.revisits.found_near(at, near)
         if half_sure is not None:  # a half-sure view found near: STOP there
             sure = half_sure[rows] & (near >= self.stop_near_min_near)
             a_t = a_t.index_put((rows,), torch.where(sure, STOP, a_t[rows]))

@@ -357,11 +357,12 @@ class RevisitPenalty:
             out = out + self.near.penalty * near.to(torch.float32)
         return out
 
-    def found_near(self, env_ids: torch.Tensor) -> None:
-        """Slots ``env_ids`` (long tensor) have been found near their target (``near.until``): their near visits
-        no longer count until their next reset. A no-op without ``near.until``."""
+    def found_near(self, env_ids: torch.Tensor, near_prob: torch.Tensor) -> None:
+        """Slots ``env_ids`` (``(M,)`` long) whose stop-offset net gave their view ``near_prob`` (``(M,)``) of being
+        near the target: those at ``near.until`` or more no longer count near visits until their next reset. A
+        no-op without ``near.until``."""
         if self.near.until:
-            self.near_found[env_ids.to(self.device)] = True
+            self.near_found[env_ids.to(self.device)[near_prob.to(self.device) >= self.near.until]] = True
 
     def memory_features(self, idx: torch.Tensor, band: int) -> torch.Tensor:
         """What the memory says about the search so far, as ``(K, MEMORY_FEATURES)`` float32 inputs for a policy.
