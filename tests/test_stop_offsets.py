@@ -440,6 +440,28 @@ def test_tool_refuses_bad_input(tmp_path) -> None:
     assert run.returncode == 2 and "--overwrite" in run.stderr and out.read_bytes() == b"x"
 
 
+def test_tool_pools_several_splits_files(panoramas, tmp_path) -> None:
+    """Two splits files (say indoor and outdoor) pool their panoramas: 2 + 1 train and 1 + 1 val; a bad second
+    file is named."""
+    root, first = _panorama_folder(panoramas, tmp_path)  # train p0, p1; val p2
+    second = tmp_path / "other" / "splits.json"
+    second.parent.mkdir()
+    second.write_text(json.dumps({"root": str(root), "splits": {"train": [{"image": "p2.png", "label": "x"}],
+                                                                 "val": [{"image": "p0.png", "label": "x"}]}}))
+    out = tmp_path / "net.pth"
+    tool = [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py"), "--root", str(root), "--out", str(out)]
+    run = subprocess.run(tool + ["--splits", str(first), str(second), "--size", str(SIZE), "--pairs", "30",
+                                 "--blur-pairs", "0", "--val-pairs", "20", "--epochs", "1"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "3 train and 2 val panoramas" in run.stdout
+    assert torch.load(out, weights_only=True)["meta"]["splits"] == f"{first} {second}"
+    empty = tmp_path / "empty" / "splits.json"
+    empty.parent.mkdir()
+    empty.write_text(json.dumps({"root": str(root), "splits": {"train": [], "val": []}}))
+    run = subprocess.run(tool + ["--splits", str(first), str(empty), "--overwrite"], capture_output=True, text=True)
+    assert run.returncode == 2 and f"{empty}: the 'train' split is empty" in run.stderr
+
+
 def _panorama_folder(panoramas, tmp_path) -> tuple[Path, Path]:
     """The panoramas as PNGs under ``tmp_path/panos`` and a splits.json naming the first two train, the third val."""
     root = tmp_path / "panos"

@@ -37,7 +37,8 @@ from findview_baselines.training.stop_offsets import accuracy, sample_pairs, spl
 def main(argv: list[str] | None = None) -> int:
     """Parse, load, sample, report; returns the exit status (0, or 2 for bad input)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--splits", required=True, help="splits.json of tools/make_dataset.py")
+    p.add_argument("--splits", required=True, nargs="+",
+                   help="splits.json of tools/make_dataset.py; several files pool their panoramas")
     p.add_argument("--root", required=True, help="the panorama folder the splits name their images under")
     p.add_argument("--models", required=True, nargs="+", help="stop-offset net files (same FoV and view size)")
     p.add_argument("--split", default="val", help="the split whose panoramas give the pairs (default val)")
@@ -65,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             if abs(net.fov - first.fov) > 1e-6 or net.size != first.size:
                 raise StopOffsetsError(f"{path}: made for FoV {net.fov:g} and {net.size}x{net.size} views, "
                                        f"{args.models[0]} for FoV {first.fov:g} and {first.size}x{first.size}")
-        panoramas = split_panoramas(Path(args.splits), Path(args.root), args.split)
+        panoramas = [pano for f in args.splits for pano in split_panoramas(Path(f), Path(args.root), args.split)]
     except (ValueError, MissingDataFile) as err:  # StopOffsetsError, PanoramaError and DatasetError are ValueErrors
         print(f"report_stop_offsets: {err}", file=sys.stderr)
         return 2

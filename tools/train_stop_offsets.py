@@ -7,7 +7,7 @@ Usage::
         --out pretrained/stop_offsets_fov90_256.pth
 
 Pairs of a target (corrupted: every corruption, severity 1-5, 20% clean) and a view a few degrees from it are
-rendered from the **train** panoramas of ``--splits`` (``--pairs`` of them, plus ``--blur-pairs`` with the
+rendered from the **train** panoramas of ``--splits`` (one splits file or several, pooled; ``--pairs`` of them, plus ``--blur-pairs`` with the
 corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
 offset per axis (findview_baselines/agents/stop_offsets.py). A ``--far-fraction`` of the pairs (and of the val
 pairs) put the view elsewhere on the panorama instead, so that the net also learns whether a view is near its
@@ -48,7 +48,9 @@ from findview_baselines.training.stop_offsets import (  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     """Parse, sample, train, report, write; returns the exit status (0, or 2 for bad input)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--splits", required=True, help="splits.json of tools/make_dataset.py (train and val panoramas)")
+    p.add_argument("--splits", required=True, nargs="+",
+                   help="splits.json of tools/make_dataset.py (train and val panoramas); several files pool their "
+                        "panoramas (e.g. the indoor and the outdoor ones)")
     p.add_argument("--root", required=True, help="the panorama folder the splits name their images under")
     p.add_argument("--out", required=True, help="the .pth to write")
     p.add_argument("--fov", type=float, default=90.0, help="field of view of the views, degrees (default 90)")
@@ -86,8 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     start = time.time()
     try:
-        train_panos = split_panoramas(Path(args.splits), Path(args.root), "train")
-        val_panos = split_panoramas(Path(args.splits), Path(args.root), "val")
+        train_panos = [pano for f in args.splits for pano in split_panoramas(Path(f), Path(args.root), "train")]
+        val_panos = [pano for f in args.splits for pano in split_panoramas(Path(f), Path(args.root), "val")]
     except (ValueError, MissingDataFile) as err:  # PanoramaError and DatasetError are ValueErrors
         print(f"train_stop_offsets: {err}", file=sys.stderr)
         return 2
@@ -106,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'val pairs':18s}" + "".join(f" {c:>8s}" for c in columns))
     for name, r in report.items():
         print(f"{name:18s}" + "".join(f" {r[c]:8.3f}" for c in columns))
-    meta = {"command": " ".join(sys.argv), "splits": str(args.splits), "pairs": args.pairs, "far_fraction": far,
+    meta = {"command": " ".join(sys.argv), "splits": " ".join(args.splits), "pairs": args.pairs, "far_fraction": far,
             "far_lookalike": alike, "min_near": args.min_near,
             "blur_pairs": args.blur_pairs, "blur_corruptions": blur, "epochs": args.epochs, "seed": args.seed,
             "min_stay": args.min_stay, "val": report, "seconds": round(time.time() - start, 1)}
