@@ -31,7 +31,7 @@ import torch  # noqa: E402
 
 from findview.dataset.splits import MissingDataFile  # noqa: E402
 from findview_baselines.agents.stop_offsets import StopOffsetsError, load_stop_offsets  # noqa: E402
-from findview_baselines.training.stop_offsets import accuracy, sample_pairs, split_panoramas  # noqa: E402
+from findview_baselines.training.stop_offsets import accuracy, pooled_panoramas, sample_pairs  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             if abs(net.fov - first.fov) > 1e-6 or net.size != first.size:
                 raise StopOffsetsError(f"{path}: made for FoV {net.fov:g} and {net.size}x{net.size} views, "
                                        f"{args.models[0]} for FoV {first.fov:g} and {first.size}x{first.size}")
-        panoramas = [pano for f in args.splits for pano in split_panoramas(Path(f), Path(args.root), args.split)]
+        panoramas = pooled_panoramas(args.splits, Path(args.root), args.split)
     except (ValueError, MissingDataFile) as err:  # StopOffsetsError, PanoramaError and DatasetError are ValueErrors
         print(f"report_stop_offsets: {err}", file=sys.stderr)
         return 2

@@ -41,7 +41,7 @@ from findview_baselines.training.stop_offsets import (  # noqa: E402
     accuracy,
     fit,
     sample_pairs,
-    split_panoramas,
+    pooled_panoramas,
 )
 
 
@@ -88,8 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     start = time.time()
     try:
-        train_panos = [pano for f in args.splits for pano in split_panoramas(Path(f), Path(args.root), "train")]
-        val_panos = [pano for f in args.splits for pano in split_panoramas(Path(f), Path(args.root), "val")]
+        train_panos = pooled_panoramas(args.splits, Path(args.root), "train")
+        val_panos = pooled_panoramas(args.splits, Path(args.root), "val")
     except (ValueError, MissingDataFile) as err:  # PanoramaError and DatasetError are ValueErrors
         print(f"train_stop_offsets: {err}", file=sys.stderr)
         return 2

@@ -11,7 +11,7 @@ normalised correlation of grey 32x32 renders of view and clean target, poses wit
 axes excluded): the look-alike parts of a panorama (a forest's trees, a hall's windows) the near output must refuse.
 Only the features of a pair are kept (:func:`pair_features`), so memory grows by about 3 KB a pair.
 
-:func:`split_panoramas` loads the panoramas of a split, :func:`sample_pairs` makes the pairs, :func:`fit` trains the
+:func:`split_panoramas` loads the panoramas of a split (:func:`pooled_panoramas`: of several splits files), :func:`sample_pairs` makes the pairs, :func:`fit` trains the
 MLP (Adam, cosine learning rate, cross-entropy of both axes) and :func:`accuracy` reports what the refinement needs:
 how often a view on its target is left alone, and how often a view one degree off is sent the right way.
 ``tools/train_stop_offsets.py`` is the command; ``tools/report_stop_offsets.py`` scores nets on the same pairs.
@@ -41,7 +41,7 @@ from findview_baselines.agents.stop_offsets import (
 )
 from findview_baselines.agents.stop_refine import gray, move_towards
 
-__all__ = ["Pairs", "split_panoramas", "sample_pairs", "fit", "accuracy"]
+__all__ = ["Pairs", "split_panoramas", "pooled_panoramas", "sample_pairs", "fit", "accuracy"]
 
 _CHUNK = 500
 _MID = OFFSET_CLASSES // 2
@@ -83,6 +83,12 @@ def split_panoramas(splits: Path, root: Path, split: str) -> list[torch.Tensor]:
     if not entries:
         raise ValueError(f"{splits}: the {split!r} split is empty")
     return [torch.from_numpy(load_panorama(e.path)).permute(2, 0, 1).contiguous() for e in entries]
+
+
+def pooled_panoramas(splits: Sequence[Path], root: Path, split: str) -> list[torch.Tensor]:
+    """The panoramas of ``split`` in every splits file of ``splits`` (say the indoor and the outdoor one), in order;
+    :func:`split_panoramas` of each, with its errors."""
+    return [pano for path in splits for pano in split_panoramas(Path(path), root, split)]
 
 
 def _axis_offsets(rng: np.random.Generator, n: int) -> np.ndarray:
