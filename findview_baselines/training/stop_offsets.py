@@ -11,8 +11,9 @@ normalised correlation of grey 32x32 renders of view and clean target, poses wit
 axes excluded): the look-alike parts of a panorama (a forest's trees, a hall's windows) the near output must refuse.
 Only the features of a pair are kept (:func:`pair_features`), so memory grows by about 3 KB a pair.
 
-:func:`split_panoramas` loads the panoramas of a split (:func:`pooled_panoramas`: of several splits files), :func:`sample_pairs` makes the pairs, :func:`fit` trains the
-MLP (Adam, cosine learning rate, cross-entropy of both axes) and :func:`accuracy` reports what the refinement needs:
+:func:`split_panoramas` loads the panoramas of a split (:func:`pooled_panoramas`: of several splits files),
+:func:`sample_pairs` makes the pairs, :func:`fit` trains the MLP (Adam, cosine learning rate, cross-entropy of both
+axes) and :func:`accuracy` reports what the refinement needs:
 how often a view on its target is left alone, and how often a view one degree off is sent the right way.
 ``tools/train_stop_offsets.py`` is the command; ``tools/report_stop_offsets.py`` scores nets on the same pairs.
 """
