@@ -451,7 +451,8 @@ def test_tool_pools_several_splits_files(panoramas, tmp_path) -> None:
     out = tmp_path / "net.pth"
     tool = [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py"), "--root", str(root), "--out", str(out)]
     run = subprocess.run(tool + ["--splits", str(first), str(second), "--size", str(SIZE), "--pairs", "30",
-                                 "--blur-pairs", "0", "--val-pairs", "20", "--epochs", "1"], capture_output=True, text=True)
+                                 "--blur-pairs", "0", "--val-pairs", "20", "--epochs", "1"],
+                         capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "3 train and 2 val panoramas" in run.stdout
     assert torch.load(out, weights_only=True)["meta"]["splits"] == f"{first} {second}"

@@ -7,8 +7,8 @@ Usage::
         --out pretrained/stop_offsets_fov90_256.pth
 
 Pairs of a target (corrupted: every corruption, severity 1-5, 20% clean) and a view a few degrees from it are
-rendered from the **train** panoramas of ``--splits`` (one splits file or several, pooled; ``--pairs`` of them, plus ``--blur-pairs`` with the
-corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
+rendered from the **train** panoramas of ``--splits`` (one splits file or several, pooled; ``--pairs`` of them,
+plus ``--blur-pairs`` with the corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
 offset per axis (findview_baselines/agents/stop_offsets.py). A ``--far-fraction`` of the pairs (and of the val
 pairs) put the view elsewhere on the panorama instead, so that the net also learns whether a view is near its
 target at all (the near output ``agent.refine_min_near`` uses to refuse stops on look-alike views); with
