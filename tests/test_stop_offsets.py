@@ -6,6 +6,7 @@ the agent searches on from a refused stop, and files and settings are checked.""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -440,27 +441,32 @@ def test_tool_refuses_bad_input(tmp_path) -> None:
     assert run.returncode == 2 and "--overwrite" in run.stderr and out.read_bytes() == b"x"
 
 
-def test_tool_pools_several_splits_files(panoramas, tmp_path) -> None:
+def test_tool_pools_several_splits_files(panoramas, tmp_path, capsys) -> None:
     """Two splits files (say indoor and outdoor) pool their panoramas: 2 + 1 train and 1 + 1 val; a bad second
-    file is named."""
+    file is named. In process (the tool's ``main``), to spare the suite two interpreter starts."""
+    spec = importlib.util.spec_from_file_location("train_stop_offsets_tool", ROOT / "tools" / "train_stop_offsets.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
     root, first = _panorama_folder(panoramas, tmp_path)  # train p0, p1; val p2
     second = tmp_path / "other" / "splits.json"
     second.parent.mkdir()
     second.write_text(json.dumps({"root": str(root), "splits": {"train": [{"image": "p2.png", "label": "x"}],
                                                                  "val": [{"image": "p0.png", "label": "x"}]}}))
     out = tmp_path / "net.pth"
-    tool = [sys.executable, str(ROOT / "tools" / "train_stop_offsets.py"), "--root", str(root), "--out", str(out)]
-    run = subprocess.run(tool + ["--splits", str(first), str(second), "--size", str(SIZE), "--pairs", "30",
-                                 "--blur-pairs", "0", "--val-pairs", "20", "--epochs", "1"],
-                         capture_output=True, text=True)
-    assert run.returncode == 0, run.stderr[-2000:]
-    assert "3 train and 2 val panoramas" in run.stdout
+    args = ["--root", str(root), "--out", str(out)]
+    threads = torch.get_num_threads()
+    try:
+        assert tool.main(args + ["--splits", str(first), str(second), "--size", str(SIZE), "--pairs", "30",
+                                 "--blur-pairs", "0", "--val-pairs", "20", "--epochs", "1"]) == 0
+    finally:
+        torch.set_num_threads(threads)  # the tool sets its --threads
+    assert "3 train and 2 val panoramas" in capsys.readouterr().out
     assert torch.load(out, weights_only=True)["meta"]["splits"] == f"{first} {second}"
     empty = tmp_path / "empty" / "splits.json"
     empty.parent.mkdir()
     empty.write_text(json.dumps({"root": str(root), "splits": {"train": [], "val": []}}))
-    run = subprocess.run(tool + ["--splits", str(first), str(empty), "--overwrite"], capture_output=True, text=True)
-    assert run.returncode == 2 and f"{empty}: the 'train' split is empty" in run.stderr
+    assert tool.main(args + ["--splits", str(first), str(empty), "--overwrite"]) == 2
+    assert f"{empty}: the 'train' split is empty" in capsys.readouterr().err
 
 
 def _panorama_folder(panoramas, tmp_path) -> tuple[Path, Path]:
