@@ -454,19 +454,19 @@ def test_tool_pools_several_splits_files(panoramas, tmp_path, capsys) -> None:
                                                                  "val": [{"image": "p0.png", "label": "x"}]}}))
     out = tmp_path / "net.pth"
     args = ["--root", str(root), "--out", str(out)]
-    threads = torch.get_num_threads()
-    try:
-        assert tool.main(args + ["--splits", str(first), str(second), "--size", str(SIZE), "--pairs", "30",
-                                 "--blur-pairs", "0", "--val-pairs", "20", "--epochs", "1"]) == 0
-    finally:
-        torch.set_num_threads(threads)  # the tool sets its --threads
-    assert "3 train and 2 val panoramas" in capsys.readouterr().out
-    assert torch.load(out, weights_only=True)["meta"]["splits"] == f"{first} {second}"
     empty = tmp_path / "empty" / "splits.json"
     empty.parent.mkdir()
     empty.write_text(json.dumps({"root": str(root), "splits": {"train": [], "val": []}}))
-    assert tool.main(args + ["--splits", str(first), str(empty), "--overwrite"]) == 2
-    assert f"{empty}: the 'train' split is empty" in capsys.readouterr().err
+    threads = torch.get_num_threads()
+    try:  # the tool sets torch's threads to its --threads, even on the way to an error
+        assert tool.main(args + ["--splits", str(first), str(second), "--size", str(SIZE), "--pairs", "30",
+                                 "--blur-pairs", "0", "--val-pairs", "20", "--epochs", "1"]) == 0
+        assert "3 train and 2 val panoramas" in capsys.readouterr().out
+        assert torch.load(out, weights_only=True)["meta"]["splits"] == f"{first} {second}"
+        assert tool.main(args + ["--splits", str(first), str(empty), "--overwrite"]) == 2
+        assert f"{empty}: the 'train' split is empty" in capsys.readouterr().err
+    finally:  # later tests' runs depend on the process's thread count (a training's results among them)
+        torch.set_num_threads(threads)
 
 
 def _panorama_folder(panoramas, tmp_path) -> tuple[Path, Path]:
