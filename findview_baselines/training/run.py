@@ -91,6 +91,10 @@ def train(cfg: Any, run_dir: str | Path, progress: bool | None = None) -> TrainR
     ``DictConfig`` is validated first). With ``trainer.distributed=true`` this process is one rank of a
     torchrun job (see the module docstring); it joins the job first and leaves it at the end.
 
+    Threads: ``trainer.torch_threads`` is applied by ``tools/train.py`` (:func:`findview.runtime.configure_threads`,
+    for the whole process); called in process, ``train`` runs on the caller's thread count, and the trained weights
+    depend on it (floating-point sums split across threads): call ``configure_threads`` first to reproduce a CLI run.
+
     Raises:
         UserError / ConfigError / CheckpointError / OutputPathError: a bad value, an unwritable folder, a run
             folder held by a live run, or a checkpoint that does not fit (naming the file and the way out).
