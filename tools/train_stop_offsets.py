@@ -8,10 +8,11 @@ Usage::
 
 Pairs of a target (corrupted: every corruption, severity 1-5, 20% clean) and a view a few degrees from it are
 rendered from the **train** panoramas of ``--splits`` (one splits file or several, pooled; ``--pairs`` of them,
-plus ``--blur-pairs`` with the corruptions of ``--blur-corruptions`` only: those whose content moves the most), and the net learns the view's
-offset per axis (findview_baselines/agents/stop_offsets.py). A ``--far-fraction`` of the pairs (and of the val
-pairs) put the view elsewhere on the panorama instead, so that the net also learns whether a view is near its
-target at all (the near output ``agent.refine_min_near`` uses to refuse stops on look-alike views); with
+plus ``--blur-pairs`` with the corruptions of ``--blur-corruptions`` only: those whose content moves the most),
+and the net learns the view's offset per axis (findview_baselines/agents/stop_offsets.py). A ``--far-fraction`` of
+the pairs (and of the val pairs) put the view elsewhere on the panorama instead, so that the net also learns
+whether a view is near its target at all (the near output ``agent.refine_min_near`` uses to refuse stops on
+look-alike views); with
 ``--far-lookalike k`` each such view put anywhere is the most alike of k random poses (the look-alikes themselves).
 ``--val-pairs`` pairs from the **val** panoramas report how often a view on its target is left alone and how often
 a view one degree off is sent the right way, and with the near output how often a view at most 2 degrees off is
@@ -40,8 +41,8 @@ from findview_baselines.training.stop_offsets import (  # noqa: E402
     Pairs,
     accuracy,
     fit,
-    sample_pairs,
     pooled_panoramas,
+    sample_pairs,
 )
 
 
