@@ -4,7 +4,6 @@ over the difficulties in the paper's column order."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -12,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from _tools import load_tool
 from findview_baselines.evaluation.results import (
     CORRUPTION_CATEGORIES,
     CollectError,
@@ -31,10 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def collect():
     """``tools/collect_results.py``'s ``main`` (in process: fast)."""
-    spec = importlib.util.spec_from_file_location("collect_results_tool", REPO / "tools" / "collect_results.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.main
+    return load_tool("collect_results").main
 
 
 def metrics(eps: float, spl: float = 0.5, stop: float = 1.0) -> dict:

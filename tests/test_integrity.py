@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from _tools import load_tool
+
 REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable
 SMALL = ["sim.height=64", "sim.width=64", "progress=false"]
@@ -99,15 +101,6 @@ def test_first_k_episodes_of_a_bigger_file_are_the_file_made_with_k(k3, tmp_path
         ensure_dataset({**k3, "episodes_per_image": 5, "episode_seed": 99}, [90], pitch_bound=60, progress=False)
 
 
-def _tool_module(name: str):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(f"_tool_{name}", REPO / "tools" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize("tool", ["render_episode", "render_corruptions"])
 def test_render_tools_use_a_bigger_file_under_their_own_logger(tool, k3, tmp_path, caplog):
     """Default episodes_per_image (1) on a K=3 folder: the tool renders episode 0 and logs as itself."""
@@ -118,7 +111,7 @@ def test_render_tools_use_a_bigger_file_under_their_own_logger(tool, k3, tmp_pat
     args = [*overrides(k3), *SMALL[:2]]
     cfg = compose_config(tool, args)
     with caplog.at_level(logging.INFO):
-        png = _tool_module(tool).render(cfg, tmp_path, {"dataset": "synthetic"}, args)
+        png = load_tool(tool).render(cfg, tmp_path, {"dataset": "synthetic"}, args)
     assert png.is_file() and png.stat().st_size > 0
     names = {r.name for r in caplog.records}
     assert f"findview.{tool}" in names and "findview.eval" not in names

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -13,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from _tools import load_tool
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -26,10 +26,7 @@ def one_torch_thread():
 
 
 def _tool_module():
-    spec = importlib.util.spec_from_file_location("render_episode_tool", REPO / "tools" / "render_episode.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("render_episode")
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,6 @@ the agent searches on from a refused stop, and files and settings are checked.""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -16,6 +15,7 @@ import cv2
 import pytest
 import torch
 
+from _tools import load_tool
 from findview.dataset import generate_panorama
 from findview_baselines.agents.base import DOWN, LEFT, RIGHT, STOP, UP
 from findview_baselines.agents.stop_offsets import (
@@ -444,9 +444,7 @@ def test_tool_refuses_bad_input(tmp_path) -> None:
 def test_tool_pools_several_splits_files(panoramas, tmp_path, capsys) -> None:
     """Two splits files (say indoor and outdoor) pool their panoramas: 2 + 1 train and 1 + 1 val; a bad second
     file is named. In process (the tool's ``main``), to spare the suite two interpreter starts."""
-    spec = importlib.util.spec_from_file_location("train_stop_offsets_tool", ROOT / "tools" / "train_stop_offsets.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("train_stop_offsets")
     root, first = _panorama_folder(panoramas, tmp_path)  # train p0, p1; val p2
     second = tmp_path / "other" / "splits.json"
     second.parent.mkdir()
