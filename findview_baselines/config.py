@@ -335,6 +335,12 @@ class PPOAgentConfig:
     below this is refused, as ``stop_min_prob`` refuses one: the slot takes its most likely move and searches on.
     With ``stop_by`` a view becomes the most stop-like pose (the walk's goal) only if the net finds it near. A stop
     on a look-alike part of the panorama then does not end the episode. null = off."""
+    refine_near_model: Optional[str] = None
+    """With ``refine_min_near``: a second stop-offset file with the near output (same FoV and view size) that answers
+    every near check (``refine_min_near``, ``stop_near_prob``, ``revisit_near_rows``) while ``refine_model``'s net
+    keeps deciding the refinement's moves, e.g. a net trained against look-alikes
+    (tools/train_stop_offsets.py ``--far-lookalike``) beside a refinement net without the near output.
+    null = ``refine_model``'s net answers both."""
     stop_prob: Optional[float] = None
     """At evaluation (as ``refine_stop``): STOP whenever the policy gives STOP at least this probability, even when a
     move has more (a learned stop that hesitates on corrupted targets); null = the argmax (or the sample) decides."""
@@ -415,6 +421,8 @@ class PPOAgentConfig:
         check(self.refine_min_near is None or (0 < self.refine_min_near < 1 and self.refine_model is not None),
               "agent.refine_min_near", self.refine_min_near,
               "null, or a probability in (0, 1) with agent.refine_model (a stop-offset net with the near output)")
+        check(self.refine_near_model is None or self.refine_min_near is not None, "agent.refine_near_model",
+              self.refine_near_model, "null, or a stop-offset file with the near output with agent.refine_min_near")
         check(self.stop_prob is None or 0 < self.stop_prob <= 1, "agent.stop_prob", self.stop_prob,
               "null or a probability in (0, 1]")
         check(self.stop_min_prob is None or 0 < self.stop_min_prob <= 1, "agent.stop_min_prob", self.stop_min_prob,

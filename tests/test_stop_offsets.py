@@ -210,6 +210,27 @@ def test_refiner_refuses_the_stops_the_net_finds_far() -> None:
         _fixed_net(2, 2).near_prob(img, img)
 
 
+def test_a_second_net_answers_the_near_check_and_the_first_keeps_the_moves() -> None:
+    """With ``near_offsets`` the near check is the second net's (far here, near there) whatever the first says, and
+    the moves stay the first net's (1 degree right of the target: LEFT). A first net without the near output is
+    enough then; a second net without it, or one without ``min_near``, is refused."""
+    img = (torch.rand(2, 3, SIZE, SIZE, generator=torch.Generator().manual_seed(0)) * 255).to(torch.uint8)
+    mover = _fixed_net(2, 3)  # no near output
+    far = StopRefiner(2, FOV, offsets=mover, min_near=0.5, near_offsets=_fixed_net(2, 2, near=False))
+    assert far.refuse(img, img).tolist() == [True, True]
+    assert far.decide(torch.tensor([0, 1]), img, img).tolist() == [LEFT, LEFT]
+    near = StopRefiner(2, FOV, offsets=_fixed_net(2, 3, near=False), min_near=0.5,
+                       near_offsets=_fixed_net(2, 2, near=True))
+    assert near.refuse(img, img).tolist() == [False, False]
+    assert near.near_prob(img, img).min().item() > 0.99
+    with pytest.raises(ValueError, match="near_offsets has no near output"):
+        StopRefiner(2, FOV, offsets=mover, min_near=0.5, near_offsets=_fixed_net(2, 2))
+    with pytest.raises(ValueError, match="needs offsets and min_near"):
+        StopRefiner(2, FOV, offsets=mover, near_offsets=_fixed_net(2, 2, near=True))
+    with pytest.raises(ValueError, match="needs offsets and min_near"):
+        StopRefiner(2, FOV, min_near=0.5, near_offsets=_fixed_net(2, 2, near=True))
+
+
 def _fixed_policy(probs: list[float]):
     """A 32x32 ``direct`` policy whose action probabilities (UP, DOWN, LEFT, RIGHT, STOP) are ``probs`` whatever it
     sees (zero actor weights, log-probability biases)."""
@@ -400,6 +421,8 @@ def test_config_checks_the_refine_model_settings() -> None:
         PPOAgentConfig(refine_stop=True, refine_min_near=0.5)
     with pytest.raises(ValueError, match="agent.refine_min_near"):
         PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_min_near=0.0)
+    with pytest.raises(ValueError, match="agent.refine_near_model.*agent.refine_min_near"):
+        PPOAgentConfig(refine_stop=True, refine_model="x.pth", refine_near_model="y.pth")
 
 
 def test_agent_refiner_loads_the_net_for_its_views(trained, tmp_path) -> None:
@@ -419,6 +442,14 @@ def test_agent_refiner_loads_the_net_for_its_views(trained, tmp_path) -> None:
     near = save_stop_offsets(tmp_path / "near.pth", _fixed_net(2, 2, near=True), {})
     refiner = _refiner(PPOAgentConfig(refine_stop=True, refine_model=str(near), refine_min_near=0.6, fov=FOV), 3, SIZE)
     assert refiner.min_near == 0.6 and refiner.offsets.near
+    # a refinement net without the near output beside a second net that has it: each keeps its job
+    both = _refiner(PPOAgentConfig(refine_stop=True, refine_model=str(path), refine_near_model=str(near),
+                                   refine_min_near=0.6, fov=FOV), 3, SIZE)
+    assert not both.offsets.near and both.near_offsets.near and both.min_near == 0.6
+    wrong = save_stop_offsets(tmp_path / "wrong.pth", _fixed_net(2, 2, near=True, size=128), {})
+    with pytest.raises(StopOffsetsError, match="made for 128x128 views"):
+        _refiner(PPOAgentConfig(refine_stop=True, refine_model=str(path), refine_near_model=str(wrong),
+                                refine_min_near=0.6, fov=FOV), 3, SIZE)
 
 
 def test_tool_refuses_bad_input(tmp_path) -> None:

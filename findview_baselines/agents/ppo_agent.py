@@ -592,15 +592,18 @@ class PPOAgent(Agent):
 
 
 def _refiner(cfg: "PPOAgentConfig", num_envs: int, width: int | None) -> StopRefiner:
-    """The stop refinement of the ``agent`` section: by the measured residual, or by ``agent.refine_model``'s net
-    (checked against the views' FoV and ``width``, pixels)."""
-    offsets = None
+    """The stop refinement of the ``agent`` section: by the measured residual, or by ``agent.refine_model``'s net,
+    with ``agent.refine_near_model``'s net (if given) for the near check (each checked against the views' FoV and
+    ``width``, pixels)."""
+    offsets = near_offsets = None
     if cfg.refine_model is not None:
         from findview_baselines.agents.stop_offsets import load_stop_offsets
 
         offsets = load_stop_offsets(cfg.refine_model, fov=cfg.fov, size=width)
+        if cfg.refine_near_model is not None:
+            near_offsets = load_stop_offsets(cfg.refine_near_model, fov=cfg.fov, size=width)
     return StopRefiner(num_envs, cfg.fov, cfg.refine_moves, offsets=offsets, min_stay=cfg.refine_min_stay,
-                       min_near=cfg.refine_min_near)
+                       min_near=cfg.refine_min_near, near_offsets=near_offsets)
 
 
 def _register() -> None:

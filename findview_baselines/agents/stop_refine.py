@@ -22,7 +22,9 @@ rotation.
 
 A net with the near output (trained with far pairs) and ``min_near`` also checks that a stop is on the target at
 all: :meth:`StopRefiner.refuse` says which stops are on views the net finds far from their target, and the agent
-searches on from those (``agent.refine_min_near``).
+searches on from those (``agent.refine_min_near``). A second net (``near_offsets``, ``agent.refine_near_model``)
+can answer that question instead, so a net trained against look-alikes checks the stops while the first keeps
+deciding the refinement's moves.
 
 Batched over environments, on any device (``torch.fft``).
 """
@@ -149,14 +151,16 @@ class StopRefiner:
         offsets: a learned stop-offset net that decides the moves instead of the residual (see the module
             docstring); ``None``: the residual decides.
         min_stay: with ``offsets``, the net's probability of "on the target" below which the slot moves.
-        min_near: with ``offsets`` that have the near output: :meth:`refuse` refuses a stop whose view the net
-            gives a probability of being near the target below this (``None``: every stop is refined, none
-            refused).
+        min_near: with ``offsets`` that have the near output (or ``near_offsets``): :meth:`refuse` refuses a stop
+            whose view the net gives a probability of being near the target below this (``None``: every stop is
+            refined, none refused).
+        near_offsets: with ``offsets`` and ``min_near``: a second stop-offset net with the near output that answers
+            :meth:`near_prob` instead of ``offsets`` (which keeps deciding the moves); ``None``: ``offsets`` answers.
     """
 
     def __init__(self, num_envs: int, fov: float, max_moves: int = 4, min_shift: float = 0.5,
                  min_peak: float = 0.15, offsets: "StopOffsetNet | None" = None, min_stay: float = 0.3,
-                 min_near: float | None = None) -> None:
+                 min_near: float | None = None, near_offsets: "StopOffsetNet | None" = None) -> None:
         if max_moves < 1:
             raise ValueError(f"max_moves must be >= 1, got {max_moves}")
         if not 0 < fov < 180:
@@ -164,13 +168,20 @@ class StopRefiner:
         if not 0 < min_stay <= 1:
             raise ValueError(f"min_stay must be a probability in (0, 1], got {min_stay}")
         self.fov, self.max_moves, self.min_shift, self.min_peak = float(fov), int(max_moves), float(min_shift), float(min_peak)
+        if near_offsets is not None:
+            if offsets is None or min_near is None:
+                raise ValueError("near_offsets is the near check of a refinement by a stop-offset net: it needs "
+                                 "offsets and min_near")
+            if not near_offsets.near:
+                raise ValueError("near_offsets has no near output (tools/train_stop_offsets.py --far-fraction > 0)")
         if min_near is not None:
             if not 0 < min_near < 1:
                 raise ValueError(f"min_near must be a probability in (0, 1) or None, got {min_near}")
-            if offsets is None or not offsets.near:
+            if offsets is None or not (offsets.near or near_offsets is not None):
                 raise ValueError("min_near needs a stop-offset net with the near output "
                                  "(tools/train_stop_offsets.py --far-fraction > 0)")
         self.offsets, self.min_stay = offsets, float(min_stay)
+        self.near_offsets = offsets if near_offsets is None else near_offsets
         self.min_near = None if min_near is None else float(min_near)
         self.refining = torch.zeros(num_envs, dtype=torch.bool)
         self.moves = torch.zeros(num_envs, dtype=torch.long)
@@ -181,10 +192,11 @@ class StopRefiner:
 
     def near_prob(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """``(B,)`` float on the views' device: the net's probability that each view ``(B, 3, H, W)`` is near its
-        target (within 3 degrees on each axis); needs ``min_near`` (a net with the near output)."""
+        target (within 3 degrees on each axis), from ``near_offsets`` if given, else ``offsets``; needs
+        ``min_near``."""
         if self.min_near is None:
             raise ValueError("StopRefiner.near_prob: no min_near given (a stop-offset net with the near output)")
-        return self.offsets.to(view.device).near_prob(view, target)
+        return self.near_offsets.to(view.device).near_prob(view, target)
 
     def refuse(self, view: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """``(B,)`` bool on the views' device: the stops to refuse, where the net's probability that the view
