@@ -337,7 +337,7 @@ class PPOAgentConfig:
     on a look-alike part of the panorama then does not end the episode. null = off."""
     refine_near_model: Optional[str] = None
     """With ``refine_min_near``: a second stop-offset file with the near output (same FoV and view size) that answers
-    every near check (``refine_min_near``, ``stop_near_prob``, ``revisit_near_rows``) while ``refine_model``'s net
+    every near check (``refine_min_near``, ``stop_near_prob``, ``revisit_near_until``) while ``refine_model``'s net
     keeps deciding the refinement's moves, e.g. a net trained against look-alikes
     (tools/train_stop_offsets.py ``--far-lookalike``) beside a refinement net without the near output.
     null = ``refine_model``'s net answers both."""
