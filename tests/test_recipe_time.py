@@ -1,0 +1,68 @@
+"""benchmarks/recipe_time.py: its stages are the FoV-90 robust card's "Make it" commands, and one run is timed on
+the trainer ``tools/train.py`` builds for the preset."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+import recipe_time  # noqa: E402  (benchmarks/recipe_time.py)
+
+from _training import blob_panorama  # noqa: E402
+
+CARD = "# `findview_sun360mini_indoor_robust.pth`"
+# the overrides that set where a run reads and writes, or how many threads and validations it has: not the recipe
+NOT_RECIPE = re.compile(r"(init_from|dataset(\.\w+)?|hydra\.[\w.]+|trainer\.torch_threads|trainer\.val_interval)=")
+
+
+def card_train_commands() -> list[tuple[list[str], bool]]:
+    """The FoV-90 robust card's ``tools/train.py`` commands in its "Make it" block, in order: (the recipe's
+    overrides, whether it runs in the background with ``&``)."""
+    text = (REPO / "pretrained" / "README.md").read_text()
+    card = text[text.index(CARD):]
+    make_it = card[card.index("## Make it"):]
+    block = make_it[make_it.index("```") + 3:]
+    block = block[:block.index("```")]
+    commands = []
+    for line in block.replace("\\\n", " ").splitlines():
+        words = shlex.split(line)
+        if words[:2] != ["python", "tools/train.py"]:
+            continue
+        background = words[-1] == "&"
+        commands.append(([w for w in words[2:] if w != "&" and not NOT_RECIPE.match(w)], background))
+    return commands
+
+
+def test_the_stages_are_the_cards_commands():
+    commands = card_train_commands()
+    assert len(commands) == 5, commands  # stage 1, stage 2, stage 3's pair, stage 4
+    runs = [(list(run), len(stage.runs) > 1) for stage in recipe_time.STAGES for run in stage.runs]
+    assert [(sorted(r), bg) for r, bg in runs] == [(sorted(c), bg) for c, bg in commands]
+
+
+def test_one_run_is_timed_on_the_presets_trainer(tmp_path: Path, one_torch_thread):
+    import cv2
+
+    root = tmp_path / "panoramas"
+    root.mkdir()
+    for i in range(4):
+        cv2.imwrite(str(root / f"pano_{i}.png"), blob_panorama(200 + i))
+    data = ["dataset=folder", f"dataset.root={root}", f"dataset.out_dir={tmp_path / 'data'}", "dataset.name=recipe",
+            "sim.prefetch_workers=0", "trainer.num_envs=2", "trainer.progress=false"]
+    result = recipe_time.time_run(["+experiment=robust_wide", *data], updates=1, warmup=1)
+    assert result["num_updates"] == 500  # configs/experiment/robust_polish.yaml, which robust_wide extends
+    assert 0 < result["s_per_update"] < 60
+
+
+def test_bad_sample_sizes_are_refused(capsys):
+    with pytest.raises(SystemExit) as err:
+        recipe_time.main(["--updates", "0"])
+    assert err.value.code == 2
+    assert "--updates and --warmup must be >= 1" in capsys.readouterr().err
+
