@@ -1,4 +1,4 @@
-"""How long the FoV-90 robust agent's recipe takes to train on this machine: an estimate in a few minutes.
+"""How long the FoV-90 robust agent's recipe takes to train on this machine: an estimate in about a minute.
 
     python benchmarks/recipe_time.py                          # the built-in synthetic data (made if missing)
     python benchmarks/recipe_time.py --updates 20 dataset=sun360_indoor dataset.root=<sun360_mini> \
