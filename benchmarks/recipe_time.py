@@ -54,16 +54,14 @@ STAGES = (
 
 def time_run(overrides: list[str], updates: int, warmup: int) -> dict[str, float]:
     """Build the trainer of ``overrides`` (composed as ``tools/train.py`` does, with ``trainer.torch_threads=1`` and
-    no validation), run ``warmup`` updates, then time ``updates``. Returns ``s_per_update`` and the preset's
+    no validation), run ``warmup`` updates, then time ``updates``, on the caller's thread settings (the ``--one``
+    process applies ``tools/train.py``'s for one torch thread first). Returns ``s_per_update`` and the preset's
     ``num_updates``."""
-    import findview  # noqa: F401  (thread policy before torch loads)
-    from findview.runtime import configure_threads
     from findview_baselines.config import compose_config, typed_config
     from findview_baselines.training.build import build_run
 
     cfg = typed_config(compose_config("train", [*overrides, "trainer.torch_threads=1", "trainer.val_interval=0",
                                                 "trainer.val_at_end=false"]))
-    configure_threads(cfg.trainer.torch_threads)
     trainer = build_run(cfg, cfg.trainer.seed, progress=False).trainer
     trainer.start()
     for _ in range(warmup):
@@ -103,7 +101,11 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.updates < 1 or args.warmup < 1:
         parser.error(f"--updates and --warmup must be >= 1 (got {args.updates} and {args.warmup})")
-    if args.one is not None:
+    if args.one is not None:  # a process of its own: the thread policy tools/train.py applies for torch_threads=1
+        import findview  # noqa: F401  (thread policy before torch loads)
+        from findview.runtime import configure_threads
+
+        configure_threads(1)
         print(json.dumps(time_run(json.loads(args.one), args.updates, args.warmup)))
         return
     rows = []
