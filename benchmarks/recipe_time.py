@@ -3,6 +3,7 @@
     python benchmarks/recipe_time.py                          # the built-in synthetic data (made if missing)
     python benchmarks/recipe_time.py --updates 20 dataset=sun360_indoor dataset.root=<sun360_mini> \
         dataset.out_dir=data/sun360_mini_indoor dataset.name=sun360_mini_indoor dataset.episodes_per_image=10
+    python benchmarks/recipe_time.py --recipe fov60               # the FoV-60 file's three stages
 
 The recipe is the five commands of ``pretrained/findview_sun360mini_indoor_robust.pth``'s "Make it"
 (pretrained/README.md): stage 1 ``+experiment=robust``, stage 2 ``+experiment=robust_memory agent.pitch_warps=true``,
@@ -16,7 +17,10 @@ the two validations (about a minute in all) are not counted. Overrides after the
 go to every run; the panoramas change an update's time little (the views are 64x64 pixels).
 
 Prints per stage: the updates, the seconds per update, the estimated minutes; then the total and its ratio to
-the hour the issue asks for. On the machine of session 51 it said 52.4 minutes (51.3 with ``--updates 30``) where
+the hour the issue asks for. ``--recipe fov60`` times the three commands of
+``pretrained/findview_sun360mini_indoor_robust_fov60.pth`` instead (stages 1 and 2 with the rollout and the
+gradient steps one after the other, as that file was made; its commands validate every 140 and 100 updates, which
+is not counted either). On the machine of session 51 it said 52.4 minutes (51.3 with ``--updates 30``) where
 the five commands took 56.5 end to end (benchmarks/RESULTS.md, "Session 51"): read it as about a tenth short.
 """
 
@@ -41,7 +45,7 @@ class Stage:
     runs: tuple[tuple[str, ...], ...]
 
 
-STAGES = (
+STAGES = (  # pretrained/findview_sun360mini_indoor_robust.pth
     Stage("1: +experiment=robust", (("+experiment=robust",),)),
     Stage("2: +experiment=robust_memory", (("+experiment=robust_memory", "agent.pitch_warps=true", "trainer.seed=1"),)),
     Stage("3: two +experiment=robust_polish side by side", (
@@ -50,6 +54,16 @@ STAGES = (
     )),
     Stage("4: +experiment=robust_wide", (("+experiment=robust_wide",),)),
 )
+_SEQUENTIAL = "trainer.dagger.overlap_rollout=false"  # the FoV-60 file was made before the overlapped rollout
+STAGES_FOV60 = (  # pretrained/findview_sun360mini_indoor_robust_fov60.pth
+    Stage("1: +experiment=robust sim.fov=60", (
+        ("+experiment=robust", "sim.fov=60", "trainer.seed=1", "trainer.keep_val_checkpoints=true", _SEQUENTIAL),)),
+    Stage("2: +experiment=robust_memory sim.fov=60", (
+        ("+experiment=robust_memory", "sim.fov=60", "agent.pitch_warps=true", "trainer.seed=2", _SEQUENTIAL),)),
+    Stage("3: +experiment=robust_wide sim.fov=60", (
+        ("+experiment=robust_wide", "sim.fov=60", "agent.wide_match_min_peak=0.75"),)),
+)
+RECIPES = {"fov90": STAGES, "fov60": STAGES_FOV60}
 
 
 def time_run(overrides: list[str], updates: int, warmup: int) -> dict[str, float]:
@@ -96,6 +110,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--updates", type=int, default=10, help="timed updates per stage (default 10)")
     parser.add_argument("--warmup", type=int, default=2, help="updates before the timed ones (default 2)")
+    parser.add_argument("--recipe", choices=tuple(RECIPES), default="fov90",
+                        help="fov90: the FoV-90 robust file's four stages (default); fov60: the FoV-60 file's three")
     parser.add_argument("--one", help=argparse.SUPPRESS)  # a JSON list of overrides: time one run, print JSON
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every run (the dataset's)")
     args = parser.parse_args(argv)
@@ -109,14 +125,14 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(time_run(json.loads(args.one), args.updates, args.warmup)))
         return
     rows = []
-    for stage in STAGES:
+    for stage in RECIPES[args.recipe]:
         results = run_stage(stage, args.updates, args.warmup, args.overrides)
         # side by side, the stage lasts as long as its slowest run
         seconds = max(r["s_per_update"] * r["num_updates"] for r in results)
         rows.append((stage, results, seconds))
         print(f"stage {stage.name}: {seconds / 60:.1f} min", flush=True)
     total = sum(seconds for _, _, seconds in rows)
-    print(f"\nThe FoV-90 robust recipe on this machine ({os.cpu_count()} CPUs; {args.updates} timed updates per run "
+    print(f"\nThe {args.recipe} robust recipe on this machine ({os.cpu_count()} CPUs; {args.updates} timed updates per run "
           f"after {args.warmup}), start-up and validations not counted:")
     print(f"{'stage':<48} | {'updates':>9} | {'s / update':>11} | {'minutes':>7}")
     for stage, results, seconds in rows:

@@ -16,16 +16,16 @@ import recipe_time  # noqa: E402  (benchmarks/recipe_time.py)
 
 from _training import blob_panorama  # noqa: E402
 
-CARD = "# `findview_sun360mini_indoor_robust.pth`"
+CARDS = {"fov90": "# `findview_sun360mini_indoor_robust.pth`", "fov60": "# `findview_sun360mini_indoor_robust_fov60.pth`"}
 # the overrides that set where a run reads and writes, or how many threads and validations it has: not the recipe
 NOT_RECIPE = re.compile(r"(init_from|dataset(\.\w+)?|hydra\.[\w.]+|trainer\.torch_threads|trainer\.val_interval)=")
 
 
-def card_train_commands() -> list[tuple[list[str], bool]]:
-    """The FoV-90 robust card's ``tools/train.py`` commands in its "Make it" block, in order: (the recipe's
+def card_train_commands(recipe: str) -> list[tuple[list[str], bool]]:
+    """The ``tools/train.py`` commands in the "Make it" block of ``recipe``'s card, in order: (the recipe's
     overrides, whether it runs in the background with ``&``)."""
     text = (REPO / "pretrained" / "README.md").read_text()
-    card = text[text.index(CARD):]
+    card = text[text.index(CARDS[recipe]):]
     make_it = card[card.index("## Make it"):]
     block = make_it[make_it.index("```") + 3:]
     block = block[:block.index("```")]
@@ -39,10 +39,11 @@ def card_train_commands() -> list[tuple[list[str], bool]]:
     return commands
 
 
-def test_the_stages_are_the_cards_commands():
-    commands = card_train_commands()
-    assert len(commands) == 5, commands  # stage 1, stage 2, stage 3's pair, stage 4
-    runs = [(list(run), len(stage.runs) > 1) for stage in recipe_time.STAGES for run in stage.runs]
+@pytest.mark.parametrize("recipe, count", [("fov90", 5), ("fov60", 3)])
+def test_the_stages_are_the_cards_commands(recipe: str, count: int):
+    commands = card_train_commands(recipe)
+    assert len(commands) == count, commands  # FoV 90: stage 1, stage 2, stage 3's pair, stage 4; FoV 60: 3 stages
+    runs = [(list(run), len(stage.runs) > 1) for stage in recipe_time.RECIPES[recipe] for run in stage.runs]
     assert [(sorted(r), bg) for r, bg in runs] == [(sorted(c), bg) for c, bg in commands]
 
 
