@@ -132,8 +132,8 @@ def main(argv: list[str] | None = None) -> None:
         rows.append((stage, results, seconds))
         print(f"stage {stage.name}: {seconds / 60:.1f} min", flush=True)
     total = sum(seconds for _, _, seconds in rows)
-    print(f"\nThe {args.recipe} robust recipe on this machine ({os.cpu_count()} CPUs; {args.updates} timed updates per run "
-          f"after {args.warmup}), start-up and validations not counted:")
+    print(f"\nThe {args.recipe} robust recipe on this machine ({os.cpu_count()} CPUs; {args.updates} timed updates "
+          f"per run after {args.warmup}), start-up and validations not counted:")
     print(f"{'stage':<48} | {'updates':>9} | {'s / update':>11} | {'minutes':>7}")
     for stage, results, seconds in rows:
         updates = " + ".join(str(int(r["num_updates"])) for r in results)

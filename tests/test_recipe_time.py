@@ -16,7 +16,10 @@ import recipe_time  # noqa: E402  (benchmarks/recipe_time.py)
 
 from _training import blob_panorama  # noqa: E402
 
-CARDS = {"fov90": "# `findview_sun360mini_indoor_robust.pth`", "fov60": "# `findview_sun360mini_indoor_robust_fov60.pth`"}
+CARDS = {  # each recipe's model card heading in pretrained/README.md
+    "fov90": "# `findview_sun360mini_indoor_robust.pth`",
+    "fov60": "# `findview_sun360mini_indoor_robust_fov60.pth`",
+}
 # the overrides that set where a run reads and writes, or how many threads and validations it has: not the recipe
 NOT_RECIPE = re.compile(r"(init_from|dataset(\.\w+)?|hydra\.[\w.]+|trainer\.torch_threads|trainer\.val_interval)=")
 

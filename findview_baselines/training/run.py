@@ -79,7 +79,7 @@ class TrainResult:
     last_val: dict[str, dict[str, float]] | None
     """``findview.metrics.summarize(..., include_all=True)`` of the last validation."""
     steps_per_second: float
-    """Env steps / s of this session's training (validation excluded)."""
+    """Env steps / s of this session: its env steps over its wall time, validations and checkpoints included."""
     stopped_by: int | None = None
     """The signal that stopped the session, if any."""
 
