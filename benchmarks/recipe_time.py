@@ -45,7 +45,7 @@ class Stage:
     runs: tuple[tuple[str, ...], ...]
 
 
-STAGES = (  # pretrained/findview_sun360mini_indoor_robust.pth
+STAGES_FOV90 = (  # pretrained/findview_sun360mini_indoor_robust.pth
     Stage("1: +experiment=robust", (("+experiment=robust",),)),
     Stage("2: +experiment=robust_memory", (("+experiment=robust_memory", "agent.pitch_warps=true", "trainer.seed=1"),)),
     Stage("3: two +experiment=robust_polish side by side", (
@@ -63,7 +63,7 @@ STAGES_FOV60 = (  # pretrained/findview_sun360mini_indoor_robust_fov60.pth
     Stage("3: +experiment=robust_wide sim.fov=60", (
         ("+experiment=robust_wide", "sim.fov=60", "agent.wide_match_min_peak=0.75"),)),
 )
-RECIPES = {"fov90": STAGES, "fov60": STAGES_FOV60}
+RECIPES = {"fov90": STAGES_FOV90, "fov60": STAGES_FOV60}
 
 
 def time_run(overrides: list[str], updates: int, warmup: int) -> dict[str, float]:

@@ -1,10 +1,9 @@
-"""benchmarks/recipe_time.py: its stages are the FoV-90 robust card's "Make it" commands, and one run is timed on
-the trainer ``tools/train.py`` builds for the preset."""
+"""benchmarks/recipe_time.py: its stages are the robust cards' "Make it" commands (FoV 90 and 60), and one run is
+timed on the trainer ``tools/train.py`` builds for the preset."""
 
 from __future__ import annotations
 
 import re
-import shlex
 import sys
 from pathlib import Path
 
@@ -12,6 +11,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
+sys.path.insert(0, str(REPO / "tools"))
+import check_docs  # noqa: E402  (tools/check_docs.py: the docs test's command parser)
 import recipe_time  # noqa: E402  (benchmarks/recipe_time.py)
 
 from _training import blob_panorama  # noqa: E402
@@ -30,15 +31,13 @@ def card_train_commands(recipe: str) -> list[tuple[list[str], bool]]:
     text = (REPO / "pretrained" / "README.md").read_text()
     card = text[text.index(CARDS[recipe]):]
     make_it = card[card.index("## Make it"):]
-    block = make_it[make_it.index("```") + 3:]
-    block = block[:block.index("```")]
+    first_block = make_it[:make_it.index("```", make_it.index("```") + 3) + 3]  # up to its first block's end
+    joined = " ".join(first_block.replace("\\\n", " ").split())  # as check_docs writes a command, then what follows
     commands = []
-    for line in block.replace("\\\n", " ").splitlines():
-        words = shlex.split(line)
-        if words[:2] != ["python", "tools/train.py"]:
-            continue
-        background = words[-1] == "&"
-        commands.append(([w for w in words[2:] if w != "&" and not NOT_RECIPE.match(w)], background))
+    for c in check_docs.extract(first_block):  # continuations joined, comments dropped, split at `&`
+        words = c.text.split()
+        if words[:2] == ["python", "tools/train.py"]:
+            commands.append(([w for w in words[2:] if not NOT_RECIPE.match(w)], f"{c.text} &" in joined))
     return commands
 
 
