@@ -312,6 +312,15 @@ class PPOAgentConfig:
     for a target outside the view (a hard episode's start) the peak is low and the network acts as the one it
     started from. Combines with ``wide_match_steps``. 0 = no threshold. tools/eval.py takes the checkpoint's
     training value unless the command line sets it."""
+    wide_match_turn: float = 0.0
+    """At evaluation, with ``wide_match_steps`` > 0: the episode's first yaw move goes the way the wide match points
+    when it is sure. In the first ``wide_match_steps`` policy steps, a view whose wide-match peak (the best ZNCC of
+    view and target, in [-1, 1]) is at least this and whose best column shift is at least
+    ``findview_baselines.agents.ppo_agent.TURN_MIN_SHIFT`` of the width sets the episode's side (the last such view
+    decides); until the agent's first LEFT or RIGHT, the yaw move away from that side is ruled out. A hand-written
+    rule on a parameter-free input: the network decides everything else, including when to turn and every later
+    move. It mends the network's first turn where the target overlaps only the view's edge (40-65 degrees to the
+    side at FoV 90), where a wrong first turn costs a full circle (benchmarks/RESULTS.md, "Session 52"). 0 = off."""
     refine_stop: bool = False
     """At evaluation (tools/eval.py, the benchmarks; the trainer's validation plays without it): check each stop
     of the policy by phase correlation of view and target, and when the target is measured at least half a degree
@@ -446,6 +455,11 @@ class PPOAgentConfig:
               "0 (every step) or a number of policy steps")
         check(0.0 <= self.wide_match_min_peak < 1.0, "agent.wide_match_min_peak", self.wide_match_min_peak,
               "a ZNCC in [0, 1) (0 = no threshold)")
+        check(0.0 <= self.wide_match_turn < 1.0, "agent.wide_match_turn", self.wide_match_turn,
+              "a ZNCC in [0, 1) (0 = off)")
+        check(not self.wide_match_turn or self.wide_match_steps > 0, "agent.wide_match_steps", self.wide_match_steps,
+              f"a number of policy steps > 0 with agent.wide_match_turn={self.wide_match_turn} (the rule reads the "
+              f"wide match in an episode's first steps only)")
         check(0 < self.fov < 180, "agent.fov", self.fov, "degrees in (0, 180)")
         check(self.revisit_penalty >= 0, "agent.revisit_penalty", self.revisit_penalty, "0 (off) or a positive number of logit units")
         check(not self.memory_inputs or self.revisit_penalty > 0, "agent.revisit_penalty", self.revisit_penalty,

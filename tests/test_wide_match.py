@@ -330,3 +330,78 @@ def test_wide_match_steps_needs_a_network_that_reads_the_wide_match() -> None:
         PPOAgent(small_policy(), 1, wide_match_steps=-1)
     with pytest.raises(ValueError, match="agent.wide_match_steps"):
         PPOAgentConfig(wide_match_steps=-2)
+
+
+class Habit(StandInPolicy):
+    """A stand-in network with the real wide match that plays a fixed habit: DOWN for its first ``down`` calls of an
+    episode, then LEFT (logit 5) over RIGHT (3) over the rest (0)."""
+
+    height = width = 64
+    wide_match = WIDE_FEATURES
+
+    def __init__(self, down: int = 0) -> None:
+        super().__init__()
+        self.wide = WideMatch(64, 64)
+        self.down = down
+        self.calls = 0
+
+    def _prepare(self, images: torch.Tensor) -> torch.Tensor:
+        return images.float() / 255 if images.dtype == torch.uint8 else images
+
+    def forward(self, obs, hidden, masks, memory=None):
+        from torch.distributions import Categorical
+
+        self.calls += 1
+        row = [0.0, 5.0, 0.0, 0.0, 0.0] if self.calls <= self.down else [0.0, 0.0, 5.0, 3.0, 0.0]
+        return Categorical(logits=torch.tensor([row]).expand(len(obs["view"]), 5)), None, hidden
+
+
+def edge_pair(yaw_offset: float) -> dict[str, torch.Tensor]:
+    """A FoV-90 view at yaw 0 and a target ``yaw_offset`` degrees to its side (+: right), 64x64 uint8, one pair."""
+    equi = panorama(7)
+    view = equi2pers(equi, torch.tensor([0.0]), torch.tensor([0.0]), 90.0, 64, 64)
+    target = equi2pers(equi, torch.tensor([0.0]), torch.tensor([yaw_offset]), 90.0, 64, 64)
+    return {"view": view, "target": target}
+
+
+def play(agent: PPOAgent, obs: dict[str, torch.Tensor], steps: int) -> list[int]:
+    return [int(agent.act(obs)[0]) for _ in range(steps)]
+
+
+def test_the_wide_match_sets_the_first_turn_and_nothing_after_it() -> None:
+    """``wide_match_turn``: a network that habitually turns LEFT makes its first yaw move RIGHT when a sure wide match
+    puts the target 50 degrees to the right, and is its own again after that move; with the target to the left, with
+    the rule off, or with a target equal to the view (no column shift), its first move is its own LEFT."""
+    from findview.task import Action
+
+    L, R, D = int(Action.LEFT), int(Action.RIGHT), int(Action.DOWN)
+    right, left = edge_pair(50.0), edge_pair(-50.0)
+    assert WideMatch(64, 64)(right["view"].float() / 255, right["target"].float() / 255)[0, WIDE_PEAK] > 0.5
+    assert play(PPOAgent(Habit(), 1, wide_match_steps=3, wide_match_turn=0.5), right, 3) == [R, L, L]
+    assert play(PPOAgent(Habit(), 1, wide_match_steps=3, wide_match_turn=0.5), left, 2) == [L, L]
+    assert play(PPOAgent(Habit(), 1, wide_match_steps=3), right, 2) == [L, L]
+    same = {"view": right["view"], "target": right["view"].clone()}
+    assert play(PPOAgent(Habit(), 1, wide_match_steps=3, wide_match_turn=0.5), same, 2) == [L, L]
+    # a side set in the first steps holds until the first yaw move, however late: pitch moves first here
+    agent = PPOAgent(Habit(down=5), 1, wide_match_steps=3, wide_match_turn=0.5)
+    assert play(agent, right, 7) == [D] * 5 + [R, L]
+    # a new episode forgets the side: an identical pair sets none, so the habit turns LEFT
+    agent.reset([0], [None])
+    agent.done[:] = False
+    agent.policy.calls = 0
+    agent.policy.down = 0
+    assert play(agent, same, 1) == [L]
+
+
+def test_wide_match_turn_is_checked() -> None:
+    from findview_baselines.config import PPOAgentConfig
+    from findview.config import ConfigError
+
+    with pytest.raises(ValueError, match="wide_match_turn=0.5 reads the wide match in an episode's first steps"):
+        PPOAgent(Habit(), 1, wide_match_turn=0.5)
+    with pytest.raises(ValueError, match="wide_match_turn must be a ZNCC in"):
+        PPOAgent(Habit(), 1, wide_match_steps=3, wide_match_turn=1.0)
+    with pytest.raises(ConfigError, match="agent.wide_match_steps"):
+        PPOAgentConfig(wide_match_turn=0.6)
+    with pytest.raises(ConfigError, match="agent.wide_match_turn"):
+        PPOAgentConfig(wide_match_turn=-0.1, wide_match_steps=10)

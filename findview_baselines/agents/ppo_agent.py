@@ -66,6 +66,7 @@ from findview_baselines.agents.stop_refine import StopRefiner
 from findview_baselines.rl.observations import area_downsample, downsample_factor
 from findview_baselines.rl.policy import WIDE_ON
 from findview_baselines.rl.search_memory import NearVisits, RowSearch, make_revisit_penalty, memory_band
+from findview_baselines.rl.wide_match import WIDE_PEAK
 
 if TYPE_CHECKING:
     from torch.distributions import Categorical
@@ -75,6 +76,9 @@ if TYPE_CHECKING:
 __all__ = ["PPOAgent", "load_ppo_checkpoint", "mirror_mean"]
 
 #: action ids as seen in the left-right mirror of an episode: LEFT and RIGHT change places
+#: ``wide_match_turn``: the smallest column shift of the wide match's peak, as a fraction of the width, that sets a
+#: side (two of the 32 columns of a 64-pixel network's wide match: a target about 6 degrees or more to the side at FoV 90)
+TURN_MIN_SHIFT = 0.05
 MIRRORED_ACTIONS = (Action.UP, Action.DOWN, Action.RIGHT, Action.LEFT, Action.STOP)
 
 
@@ -165,6 +169,10 @@ class PPOAgent(Agent):
             left-right mirror (view and target flipped, a GRU state of its own) and the agent acts on the mean of the
             two log-probabilities, the mirror's LEFT and RIGHT swapped (:func:`mirror_mean`); later steps are the
             network's alone. 0: off.
+        wide_match_turn: with ``wide_match_steps`` > 0 and a network that reads the wide match: a ZNCC peak in (0, 1);
+            a slot whose wide match, in its first ``wide_match_steps`` steps, peaks at least this with a column shift
+            of at least :data:`TURN_MIN_SHIFT` of the width cannot make its first yaw move away from that shift's
+            side (:meth:`_first_turn`). 0: off.
     """
 
     name = "ppo"
@@ -190,6 +198,7 @@ class PPOAgent(Agent):
         wide_match_min_peak: float | None = None,
         stop_near_prob: float | None = None,
         stop_near_min_near: float | None = None,
+        wide_match_turn: float = 0.0,
     ) -> None:
         if stop_prob is not None and not 0.0 < float(stop_prob) <= 1.0:
             raise ValueError(f"stop_prob must be in (0, 1] or None, got {stop_prob!r}")
@@ -233,6 +242,14 @@ class PPOAgent(Agent):
             raise ValueError(f"wide_match_steps={wide_match_steps} needs a network that reads the wide match "
                              f"(agent.wide_match, wide_match in its checkpoint signature); this one does not")
         self.wide_match_steps = int(wide_match_steps)
+        if not 0.0 <= float(wide_match_turn) < 1.0:
+            raise ValueError(f"wide_match_turn must be a ZNCC in [0, 1) (0 = off), got {wide_match_turn!r}")
+        if float(wide_match_turn) and not self.wide_match_steps:
+            raise ValueError(f"wide_match_turn={wide_match_turn} reads the wide match in an episode's first steps: it "
+                             f"needs wide_match_steps > 0, got {wide_match_steps}")
+        self.wide_match_turn = float(wide_match_turn)
+        # each slot's side from the wide match (wide_match_turn): +1 right, -1 left, 0 none
+        self.turn_side = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
         # the wide match's peak gate: None keeps the network's own (the trainer's validation plays the network it
         # trains, gate included, build_policy); a value sets it
         if wide_match_min_peak is not None:
@@ -304,6 +321,7 @@ class PPOAgent(Agent):
         wide_match_min_peak: float | None = None,
         stop_near_prob: float | None = None,
         stop_near_min_near: float | None = None,
+        wide_match_turn: float = 0.0,
     ) -> "PPOAgent":
         """Rebuild the policy from a checkpoint's signature and load its weights.
 
@@ -355,7 +373,7 @@ class PPOAgent(Agent):
         return cls(
             policy, num_envs, device, seed, sample, revisit_penalty, revisit_rows, refiner, stop_prob, fov,
             stop_by, stop_min_prob, stop_by_phase, revisit_near, mirror_steps, wide_match_steps, wide_match_min_peak,
-            stop_near_prob=stop_near_prob, stop_near_min_near=stop_near_min_near,
+            stop_near_prob=stop_near_prob, stop_near_min_near=stop_near_min_near, wide_match_turn=wide_match_turn,
         )
 
     @classmethod
@@ -384,6 +402,7 @@ class PPOAgent(Agent):
             stop_by_phase=cfg.stop_by_phase, revisit_near=NearVisits.of(cfg), mirror_steps=cfg.mirror_steps,
             wide_match_steps=cfg.wide_match_steps, wide_match_min_peak=cfg.wide_match_min_peak,
             stop_near_prob=cfg.stop_near_prob, stop_near_min_near=cfg.stop_near_min_near,
+            wide_match_turn=cfg.wide_match_turn,
         )
 
     # acting --------------------------------------------------------------------------------------
@@ -397,6 +416,7 @@ class PPOAgent(Agent):
             self.hidden_mirror[torch.tensor(ids, device=self.hidden.device)] = 0.0
         self.policy_steps[torch.tensor(ids, device=self.device)] = 0
         self.heading[torch.tensor(ids, device=self.device)] = -1
+        self.turn_side[torch.tensor(ids, device=self.device)] = 0
         if self.revisits is not None:
             self.revisits.reset(torch.tensor(ids, dtype=torch.long, device=self.device))
         if self.refiner is not None:
@@ -446,7 +466,7 @@ class PPOAgent(Agent):
                 actions[idx] = self.refiner.decide(idx, v, t)
         if len(work):
             self.done[work[(actions[torch.as_tensor(work, device=self.device)] == STOP).cpu().numpy()]] = True
-        if self.mirror_steps:
+        if self.mirror_steps or self.wide_match_turn:
             turned = (actions == Action.LEFT) | (actions == Action.RIGHT)
             self.heading = torch.where(turned, actions, self.heading)
         return actions.to(view.device)
@@ -489,6 +509,8 @@ class PPOAgent(Agent):
         else:
             self.hidden[idx] = h_new
         logits = dist.logits
+        if self.wide_match_turn:
+            logits = self._first_turn(idx, v, t, logits)
         if self.stop_min_prob is not None:  # an unsure STOP is no option: the moves decide (memory included)
             logits = logits.clone()
             logits[dist.probs[:, STOP] < self.stop_min_prob, STOP] = float("-inf")
@@ -521,6 +543,29 @@ class PPOAgent(Agent):
         if self.revisits is not None:
             self.revisits.moved(idx, a_t)
         return a_t
+
+    def _first_turn(self, idx: torch.Tensor, view: torch.Tensor, target: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+        """``wide_match_turn``: the slots ``idx`` (K,) in their first ``wide_match_steps`` policy steps whose wide match
+        is sure (peak at least ``wide_match_turn``, column shift at least :data:`TURN_MIN_SHIFT` of the width) take its
+        side; a slot with a side that has not yet moved LEFT or RIGHT gets the other yaw move's logit at ``-inf``.
+        ``view`` / ``target``: (K, 3, h, w), the network's size; ``logits``: (K, 5). Returns the logits (a copy when
+        any changed)."""
+        early = self.policy_steps[idx] <= self.wide_match_steps
+        if bool(early.any()):
+            rows = torch.nonzero(early).flatten()
+            match = self.policy.wide(self.policy._prepare(view[rows]), self.policy._prepare(target[rows]))
+            peak, shift = match[:, WIDE_PEAK], match[:, WIDE_PEAK + 2]
+            sure = (peak >= self.wide_match_turn) & (shift.abs() >= TURN_MIN_SHIFT)
+            self.turn_side[idx[rows[sure]]] = torch.where(shift[sure] > 0, 1, -1)
+        side = self.turn_side[idx]
+        unturned = (self.heading[idx] != Action.LEFT) & (self.heading[idx] != Action.RIGHT)
+        ruled_out = torch.where(side > 0, int(Action.LEFT), int(Action.RIGHT))
+        block = unturned & (side != 0)
+        if not bool(block.any()):
+            return logits
+        logits = logits.clone()
+        logits[torch.nonzero(block).flatten(), ruled_out[block]] = float("-inf")
+        return logits
 
     def _play(self, idx: torch.Tensor, view: torch.Tensor, target: torch.Tensor, hidden: torch.Tensor,
               memory: torch.Tensor | None) -> tuple["Categorical", torch.Tensor]:
