@@ -10,7 +10,7 @@ import torch
 from _growable import check_grows_from_a_checkpoint_without_it
 from _stand_in import StandInPolicy
 from findview.sim.equi2pers import equi2pers
-from findview_baselines.agents.ppo_agent import PPOAgent
+from findview_baselines.agents.ppo_agent import TURN_MIN_SHIFT, PPOAgent
 from findview_baselines.rl.checkpoint import checkpoint_payload, save_checkpoint
 from findview_baselines.rl.policy import WIDE_ON, Policy
 from findview_baselines.rl.wide_match import (
@@ -382,6 +382,11 @@ def test_the_wide_match_sets_the_first_turn_and_nothing_after_it() -> None:
     assert play(PPOAgent(Habit(), 1, wide_match_steps=3), right, 2) == [L, L]
     same = {"view": right["view"], "target": right["view"].clone()}
     assert play(PPOAgent(Habit(), 1, wide_match_steps=3, wide_match_turn=0.5), same, 2) == [L, L]
+    # a target 15 degrees to the right: its shift (about 5 of 32 columns) is below TURN_MIN_SHIFT, the habit decides
+    near = edge_pair(15.0)
+    shift = WideMatch(64, 64)(near["view"].float() / 255, near["target"].float() / 255)[0, WIDE_PEAK + 2]
+    assert 0 < shift < TURN_MIN_SHIFT
+    assert play(PPOAgent(Habit(), 1, wide_match_steps=3, wide_match_turn=0.5), near, 2) == [L, L]
     # a side set in the first steps holds until the first yaw move, however late: pitch moves first here
     agent = PPOAgent(Habit(down=5), 1, wide_match_steps=3, wide_match_turn=0.5)
     assert play(agent, right, 7) == [D] * 5 + [R, L]

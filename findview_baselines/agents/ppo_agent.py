@@ -77,8 +77,10 @@ __all__ = ["PPOAgent", "load_ppo_checkpoint", "mirror_mean"]
 
 #: action ids as seen in the left-right mirror of an episode: LEFT and RIGHT change places
 #: ``wide_match_turn``: the smallest column shift of the wide match's peak, as a fraction of the width, that sets a
-#: side (two of the 32 columns of a 64-pixel network's wide match: a target about 6 degrees or more to the side at FoV 90)
-TURN_MIN_SHIFT = 0.05
+#: side: 10 of the 32 columns of a 64-pixel network's wide match, a target about 28 degrees or more to the side at
+#: FoV 90. The wide match is there for targets at the edge of the view; nearer ones the network's own phase
+#: correlation sees, and a look-alike peak a few columns off would override it (benchmarks/RESULTS.md, "Session 52")
+TURN_MIN_SHIFT = 0.3
 MIRRORED_ACTIONS = (Action.UP, Action.DOWN, Action.RIGHT, Action.LEFT, Action.STOP)
 
 
