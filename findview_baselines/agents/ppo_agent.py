@@ -75,12 +75,12 @@ if TYPE_CHECKING:
 
 __all__ = ["PPOAgent", "load_ppo_checkpoint", "mirror_mean"]
 
-#: action ids as seen in the left-right mirror of an episode: LEFT and RIGHT change places
 #: ``wide_match_turn``: the smallest column shift of the wide match's peak, as a fraction of the width, that sets a
 #: side: 10 of the 32 columns of a 64-pixel network's wide match, a target about 28 degrees or more to the side at
 #: FoV 90. The wide match is there for targets at the edge of the view; nearer ones the network's own phase
 #: correlation sees, and a look-alike peak a few columns off would override it (benchmarks/RESULTS.md, "Session 52")
 TURN_MIN_SHIFT = 0.3
+#: action ids as seen in the left-right mirror of an episode: LEFT and RIGHT change places
 MIRRORED_ACTIONS = (Action.UP, Action.DOWN, Action.RIGHT, Action.LEFT, Action.STOP)
 
 
@@ -556,7 +556,7 @@ class PPOAgent(Agent):
         if bool(early.any()):
             rows = torch.nonzero(early).flatten()
             match = self.policy.wide(self.policy._prepare(view[rows]), self.policy._prepare(target[rows]))
-            peak, shift = match[:, WIDE_PEAK], match[:, WIDE_PEAK + 2]
+            peak, shift = match[:, WIDE_PEAK], match[:, WIDE_PEAK + 2]  # the peak's height and its column shift / w
             sure = (peak >= self.wide_match_turn) & (shift.abs() >= TURN_MIN_SHIFT)
             self.turn_side[idx[rows[sure]]] = torch.where(shift[sure] > 0, 1, -1)
         side = self.turn_side[idx]
