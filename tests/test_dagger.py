@@ -931,3 +931,28 @@ def test_train_only_moves_the_named_modules_alone(panoramas) -> None:
     trainer.train_update()
     moved = {k for k, v in policy.state_dict().items() if not torch.equal(v, before[k])}
     assert moved and all(k.startswith("wide_proj.") for k in moved), moved
+
+
+def test_first_steps_turn_labels_the_turn_alone(panoramas) -> None:
+    """first_steps_turn with first_steps=3: at env step 0 a target 40 degrees left and 10 above is labelled LEFT alone
+    (the set would also allow UP), one 60 right RIGHT alone, one straight above keeps its set (no turn to make), and
+    a hard one (150 degrees to the side) keeps the search's RIGHT; at step 3 the labels are the sets again."""
+    env = sampled_env(panoramas, 4, 32, 20, 200, seed=6)
+    policy = Policy(32, 32, variant="correlation", hidden_size=16)
+    cfg = DAggerConfig(rollout_steps=8, seq_len=8, buffer_size=100, batch_sequences=4, search_prior="pan",
+                       labels="set", first_steps=3, first_steps_turn=True)
+    trainer = DAggerTrainer(env, policy, cfg, total_updates=10)
+    trainer.start()
+    for name, values in (("pitch", (0, 0, 0, 0)), ("yaw", (0, 0, 0, 0)), ("target_pitch", (10, 0, 20, 0)),
+                         ("target_yaw", (-40, 60, 0, 150))):
+        getattr(env, name).copy_(t(*values))
+    env.steps.zero_()
+    oracle, label, searching, _ = trainer._labels(None)
+    assert oracle.tolist() == [LEFT, RIGHT, UP, RIGHT]
+    assert label.int().tolist() == [[0, 0, 1, 0, 0], [0, 0, 0, 1, 0], [1, 0, 0, 0, 0], [0, 0, 0, 1, 0]]
+    assert searching.tolist() == [False, False, False, True]
+    env.steps.fill_(3)
+    _, label, _, _ = trainer._labels(None)
+    assert label.int().tolist()[:2] == [[1, 0, 1, 0, 0], [0, 0, 0, 1, 0]]
+    with pytest.raises(ConfigError, match="first_steps_turn=true labels"):
+        DAggerConfig(first_steps_turn=True)

@@ -91,6 +91,11 @@ class DAggerConfig:
     first_steps_weight: float = 1.0
     """The factor on the first ``first_steps`` steps' loss weight (times ``search_weight`` where the views do not
     overlap)."""
+    first_steps_turn: bool = False
+    """With ``first_steps``: in those steps, where the views overlap and the target is off in yaw, the label is the
+    yaw move towards it alone (``LEFT`` or ``RIGHT``), not every shortest-path move (``labels=set`` lets a first step
+    move the pitch instead), and the oracle executes it: the network has to say which way round at the start, while
+    the wide match speaks (``agent.wide_match_steps``)."""
     memory_warm_start: float = 0.0
     """With ``agent.memory_inputs``: the share of new training episodes whose search memory starts as if the agent
     had already looked around its start row a full turn, so the labels ask it to leave the row from the first step
@@ -155,6 +160,9 @@ class DAggerConfig:
             raise ConfigError(f"trainer.dagger.beta_decay_updates must be >= 0, got {self.beta_decay_updates}")
         if self.search_weight <= 0:
             raise ConfigError(f"trainer.dagger.search_weight must be positive, got {self.search_weight!r}")
+        if self.first_steps_turn and not self.first_steps:
+            raise ConfigError("trainer.dagger.first_steps_turn=true labels an episode's first_steps steps: it needs "
+                              "trainer.dagger.first_steps > 0, got 0")
         if self.first_steps < 0:
             raise ConfigError(f"trainer.dagger.first_steps must be >= 0 env steps (0 = off), got {self.first_steps!r}")
         for name in ("stop_weight", "max_grad_norm", "first_steps_weight"):
