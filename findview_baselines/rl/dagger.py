@@ -80,7 +80,6 @@ from typing import Any, Callable, Mapping
 import torch
 from torch import nn
 
-from findview.geometry import wrap_yaw
 from findview.runtime import scoped
 from findview.task import NUM_ACTIONS, Action
 from findview.task.oracle import (
@@ -391,9 +390,9 @@ class DAggerTrainer(Trainer):
             label = nn.functional.one_hot(oracle, NUM_ACTIONS).bool()
         searching = ~overlap_mask(env.pitch, env.yaw, env.target_pitch, env.target_yaw, fov, band).to(dev)
         if cfg.first_steps_turn:  # the first steps' label is the turn towards an overlapping target alone
-            dyaw = wrap_yaw(env.target_yaw - env.yaw).to(dev)
-            turn = (env.steps.to(dev) < cfg.first_steps) & ~searching & (dyaw != 0)
-            move = torch.where(dyaw > 0, int(Action.RIGHT), int(Action.LEFT))
+            move = oracle_actions_for(env, "yaw_first").to(dev)  # LEFT / RIGHT while the yaw is off
+            turned = (move == Action.LEFT) | (move == Action.RIGHT)
+            turn = (env.steps.to(dev) < cfg.first_steps) & ~searching & turned
             oracle = torch.where(turn, move, oracle)
             label = torch.where(turn[:, None], nn.functional.one_hot(move, NUM_ACTIONS).bool(), label)
         if row_done is None:
