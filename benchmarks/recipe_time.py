@@ -18,10 +18,10 @@ go to every run; the panoramas change an update's time little (the views are 64x
 
 Prints per stage: the updates, the seconds per update, the estimated minutes; then the total and its ratio to
 the hour the issue asks for. ``--recipe fov60`` times the three commands of
-``pretrained/findview_sun360mini_indoor_robust_fov60.pth`` instead (stages 1 and 2 with the rollout and the
-gradient steps one after the other, as that file was made; its commands validate every 140 and 100 updates, which
-is not counted either). On the machine of session 51 it said 52.4 minutes (51.3 with ``--updates 30``) where
-the five commands took 56.5 end to end (benchmarks/RESULTS.md, "Session 51"): read it as about a tenth short.
+``pretrained/findview_sun360mini_indoor_robust_fov60.pth`` instead (since session 53 made as the FoV-90 file is:
+the rollout beside the gradient steps, validation only at each stage's end). On the machine of session 51 it said
+52.4 minutes (51.3 with ``--updates 30``) where the FoV-90 file's five commands took 56.5 end to end
+(benchmarks/RESULTS.md, "Session 51"): read it as about a tenth short.
 """
 
 from __future__ import annotations
@@ -54,12 +54,10 @@ STAGES_FOV90 = (  # pretrained/findview_sun360mini_indoor_robust.pth
     )),
     Stage("4: +experiment=robust_wide", (("+experiment=robust_wide",),)),
 )
-_SEQUENTIAL = "trainer.dagger.overlap_rollout=false"  # the FoV-60 file was made before the overlapped rollout
-STAGES_FOV60 = (  # pretrained/findview_sun360mini_indoor_robust_fov60.pth
-    Stage("1: +experiment=robust sim.fov=60", (
-        ("+experiment=robust", "sim.fov=60", "trainer.seed=1", "trainer.keep_val_checkpoints=true", _SEQUENTIAL),)),
+STAGES_FOV60 = (  # pretrained/findview_sun360mini_indoor_robust_fov60.pth (since session 53)
+    Stage("1: +experiment=robust sim.fov=60", (("+experiment=robust", "sim.fov=60", "trainer.seed=1"),)),
     Stage("2: +experiment=robust_memory sim.fov=60", (
-        ("+experiment=robust_memory", "sim.fov=60", "agent.pitch_warps=true", "trainer.seed=2", _SEQUENTIAL),)),
+        ("+experiment=robust_memory", "sim.fov=60", "agent.pitch_warps=true", "trainer.seed=2"),)),
     Stage("3: +experiment=robust_wide sim.fov=60", (
         ("+experiment=robust_wide", "sim.fov=60", "agent.wide_match_min_peak=0.75"),)),
 )
