@@ -21,7 +21,8 @@ the hour the issue asks for. ``--recipe fov60`` times the three commands of
 ``pretrained/findview_sun360mini_indoor_robust_fov60.pth`` instead (since session 53 made as the FoV-90 file is:
 the rollout beside the gradient steps, validation only at each stage's end). On the machine of session 51 it said
 52.4 minutes (51.3 with ``--updates 30``) where the FoV-90 file's five commands took 56.5 end to end
-(benchmarks/RESULTS.md, "Session 51"): read it as about a tenth short.
+(benchmarks/RESULTS.md, "Session 51"): read it as about a tenth short. For the FoV-60 recipe in session 53 it
+said 44.6 minutes where the three commands took 43.0 end to end.
 """
 
 from __future__ import annotations
